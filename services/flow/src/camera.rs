@@ -1,0 +1,133 @@
+//! Fast single-precision projection for the hot loop, one per camera and pyramid level.
+
+use handflow_protocol::Camera;
+
+/// A camera's projection onto one pyramid level, in `f32`.
+///
+/// Level `l` pixel coordinates relate to full-resolution ones by `u_l = (u + 0.5) / 2^l - 0.5`
+/// (the centre convention of [`crate::image::ColourImage::downsample_into`]), folded into the
+/// intrinsics so projecting costs the same at every level.
+#[derive(Clone, Debug)]
+pub struct LevelProjection {
+    rotation: [[f32; 3]; 3],
+    translation: [f32; 3],
+    fx: f32,
+    fy: f32,
+    skew: f32,
+    cx: f32,
+    cy: f32,
+    distortion: Option<[f32; 5]>,
+}
+
+/// Points closer to a camera than this (camera-frame z) do not project.
+const MIN_Z: f32 = 1e-6;
+
+impl LevelProjection {
+    /// The projection of `camera` onto pyramid level `level`.
+    pub fn new(camera: &Camera, level: usize) -> Self {
+        let s = 0.5f64.powi(level as i32);
+        let k = camera.matrix;
+        let r = camera.rotation.matrix();
+        let d = camera.distortion;
+        Self {
+            rotation: std::array::from_fn(|i| std::array::from_fn(|j| r[(i, j)] as f32)),
+            translation: std::array::from_fn(|i| camera.translation[i] as f32),
+            fx: (k[(0, 0)] * s) as f32,
+            fy: (k[(1, 1)] * s) as f32,
+            skew: (k[(0, 1)] * s) as f32,
+            cx: ((k[(0, 2)] + 0.5) * s - 0.5) as f32,
+            cy: ((k[(1, 2)] + 0.5) * s - 0.5) as f32,
+            distortion: (!d.is_zero()).then(|| d.as_array().map(|v| v as f32)),
+        }
+    }
+
+    /// Camera-frame coordinates of a world point.
+    #[inline(always)]
+    pub fn to_camera(&self, p: [f32; 3]) -> [f32; 3] {
+        let r = &self.rotation;
+        [
+            r[0][0] * p[0] + r[0][1] * p[1] + r[0][2] * p[2] + self.translation[0],
+            r[1][0] * p[0] + r[1][1] * p[1] + r[1][2] * p[2] + self.translation[1],
+            r[2][0] * p[0] + r[2][1] * p[1] + r[2][2] * p[2] + self.translation[2],
+        ]
+    }
+
+    /// Subpixel position of a world point on this level, or `None` behind the camera.
+    #[inline(always)]
+    pub fn project(&self, p: [f32; 3]) -> Option<[f32; 2]> {
+        let c = self.to_camera(p);
+        if c[2] <= MIN_Z {
+            return None;
+        }
+        let inv = 1.0 / c[2];
+        let (mut x, mut y) = (c[0] * inv, c[1] * inv);
+        if let Some([k1, k2, p1, p2, k3]) = self.distortion {
+            let r2 = x * x + y * y;
+            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+            let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+            let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+            x = xd;
+            y = yd;
+        }
+        Some([self.fx * x + self.skew * y + self.cx, self.fy * y + self.cy])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use handflow_protocol::{Distortion, Rig};
+    use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
+
+    fn camera(distortion: Distortion) -> Camera {
+        Camera::new(
+            "test",
+            640,
+            480,
+            Matrix3::new(500.0, 0.5, 320.0, 0.0, 510.0, 240.0, 0.0, 0.0, 1.0),
+            distortion,
+            Rotation3::from_euler_angles(0.1, -0.2, 0.05),
+            Vector3::new(0.1, -0.2, 2.0),
+        )
+        .expect("valid camera")
+    }
+
+    #[test]
+    fn level_zero_matches_the_double_precision_camera() {
+        let _ = Rig::default();
+        for d in [
+            Distortion::default(),
+            Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.002, k3: 0.0 },
+        ] {
+            let cam = camera(d);
+            let fast = LevelProjection::new(&cam, 0);
+            for p in [[0.1, 0.2, 1.0], [-0.3, 0.1, 0.5], [0.0, 0.0, 3.0]] {
+                let exact = cam.project(&Point3::new(p[0], p[1], p[2])).expect("in front");
+                let got = fast.project(p.map(|v| v as f32)).expect("in front");
+                assert!((f64::from(got[0]) - exact.x).abs() < 1e-3);
+                assert!((f64::from(got[1]) - exact.y).abs() < 1e-3);
+            }
+        }
+    }
+
+    #[test]
+    fn coarser_levels_follow_the_pixel_centre_convention() {
+        let cam = camera(Distortion::default());
+        let p = [0.05f32, -0.1, 1.5];
+        let full = LevelProjection::new(&cam, 0).project(p).expect("in front");
+        for level in 1..4 {
+            let s = 0.5f32.powi(level as i32);
+            let got = LevelProjection::new(&cam, level).project(p).expect("in front");
+            assert!((got[0] - ((full[0] + 0.5) * s - 0.5)).abs() < 1e-3);
+            assert!((got[1] - ((full[1] + 0.5) * s - 0.5)).abs() < 1e-3);
+        }
+    }
+
+    #[test]
+    fn points_behind_the_camera_do_not_project() {
+        let cam = camera(Distortion::default());
+        let fast = LevelProjection::new(&cam, 0);
+        let behind = cam.camera_to_world(&Point3::new(0.0, 0.0, -1.0));
+        assert!(fast.project([behind.x as f32, behind.y as f32, behind.z as f32]).is_none());
+    }
+}

@@ -1,0 +1,269 @@
+//! Every parameter of the engine, in one place, with its default and the reason for it.
+
+use serde::{Deserialize, Serialize};
+
+/// Which formulation of Scene Particles runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Variant {
+    /// The paper's method as written (sections 2.2, 4, 4.1): per-pixel colour variance
+    /// likelihood, equation 5 weights, ray resampling, coarse-to-fine diffusion. A reference.
+    Paper,
+    /// The default: the same particle filter with spatial coupling and robust matching (see
+    /// the README's engine section for each choice and its measured effect).
+    #[default]
+    Handflow,
+}
+
+impl Variant {
+    /// The name used on the command line and in JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            Variant::Paper => "paper",
+            Variant::Handflow => "handflow",
+        }
+    }
+}
+
+impl std::str::FromStr for Variant {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "paper" => Ok(Variant::Paper),
+            "handflow" => Ok(Variant::Handflow),
+            other => Err(format!("unknown variant `{other}` (expected `handflow` or `paper`)")),
+        }
+    }
+}
+
+/// How many frames the likelihood looks at.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Temporal {
+    /// Equation 3: frames t-1 and t; an estimate as soon as frame t arrives.
+    #[default]
+    TwoFrame,
+    /// Equation 6: frames t-1, t and t+1; estimates are one frame late.
+    ForwardsBackwards,
+}
+
+/// What happens to rays that hold no particle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Coverage {
+    /// Empty rays are refilled from neighbouring rays (complete coverage, for evaluation).
+    #[default]
+    Dense,
+    /// Empty rays stay empty (a sparse motion field is all trajectories need).
+    Sparse,
+}
+
+/// Configuration of [`crate::SceneFlowEngine`]. `Default` is the `handflow` variant;
+/// [`EngineConfig::paper`] is the paper's method.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct EngineConfig {
+    /// Formulation (default `handflow`).
+    pub variant: Variant,
+    /// Two-frame or forwards/backwards likelihood (default two-frame).
+    pub temporal: Temporal,
+    /// Dense or sparse ray coverage (default dense).
+    pub coverage: Coverage,
+    /// Scene Particles per ray of the reference camera (default 10, as in the paper; at most
+    /// [`MAX_PARTICLES_PER_RAY`]).
+    pub particles_per_ray: usize,
+    /// Pyramid levels, coarse to fine (default 3, as in the paper).
+    pub pyramid_levels: usize,
+    /// Noise loops per level with shrinking diffusion (default 3, as in the paper).
+    pub noise_loops: usize,
+    /// Extra noise loops on the coarsest level, `handflow` only (default 3): the coarse grid
+    /// is 16x smaller than the fine one, so these cost ~2% of a frame and let hypotheses
+    /// spread across the image before refinement.
+    pub coarse_extra_loops: usize,
+    /// Seed of every random draw (default 0). Same seed, same result, any thread count.
+    pub seed: u64,
+    /// Camera-frame depth range of the reference camera, world units (near, far).
+    pub depth_range: (f32, f32),
+    /// Symmetric bound on each velocity component, world units per frame.
+    pub speed_bound: f32,
+    /// Equation 3's epsilon (default 0.001, as in the paper).
+    pub epsilon: f32,
+    /// Diffusion at the first noise loop of a level, in pixels of that level (default 1.0):
+    /// the note on the prototype found a diffusion tied to the level's pixel size beats a
+    /// fixed one, and a step of about one pixel matches the basin of the likelihood.
+    pub diffusion_px: f32,
+    /// Factor applied to the diffusion at each further noise loop (default 0.5).
+    pub diffusion_shrink: f32,
+    /// `handflow`: half-size of the square support window of the matching cost, in pixels of
+    /// the current level (default 1, a 3x3 window; 0 is a single pixel).
+    pub window_radius: usize,
+    /// `handflow`: per-channel colour difference (normalised units) beyond which a sample
+    /// counts as an outlier (truncated L1; default 1.0, one standard deviation of the image).
+    pub truncation: f32,
+    /// `handflow`: share of the other images whose costs are summed, best first (default
+    /// 0.6): an image where the point is occluded or outside must not spoil it.
+    pub view_keep_fraction: f32,
+    /// `handflow`: temperature of the likelihood `exp(-cost / T)` (default 0.04, about the
+    /// matching cost of image noise; the paper's `1/var` keeps half the weight of a twice
+    /// worse hypothesis, which is too weak to select anything).
+    pub temperature: f32,
+    /// `handflow`: offer every ray the best particle of its four neighbours at each
+    /// iteration (default true): spatial coupling without smoothing across edges, as the
+    /// neighbour's hypothesis survives only if it explains this ray's pixels.
+    pub propagation: bool,
+    /// `handflow`: random fresh particles offered to every ray per iteration on the
+    /// coarsest level (default 1), so the filter keeps exploring.
+    pub exploration_particles: usize,
+    /// `handflow`: standard deviation of a zero-mean Gaussian prior on each velocity
+    /// component, as a fraction of `speed_bound` (default 0.25): where the images cannot tell
+    /// velocities apart (motion along the line of sight), prefer the slower one.
+    pub velocity_prior: f32,
+    /// `handflow`: radius of the edge-preserving weighted median applied to the per-ray
+    /// estimate at full resolution (default 3; 0 disables it).
+    pub refine_radius: usize,
+    /// `handflow`: colour distance (normalised units) at which a neighbour's vote in the
+    /// weighted median falls to 1/e (default 0.3).
+    pub refine_colour_sigma: f32,
+    /// Share of each ray's prior particles replaced by fresh random ones at a new frame when
+    /// the previous posterior is carried over (default 0.2).
+    pub fresh_fraction: f32,
+}
+
+/// Upper bound of [`EngineConfig::particles_per_ray`]: per-ray work happens in stack arrays.
+pub const MAX_PARTICLES_PER_RAY: usize = 32;
+
+impl Default for EngineConfig {
+    fn default() -> Self {
+        Self {
+            variant: Variant::Handflow,
+            temporal: Temporal::TwoFrame,
+            coverage: Coverage::Dense,
+            particles_per_ray: 10,
+            pyramid_levels: 3,
+            noise_loops: 3,
+            coarse_extra_loops: 3,
+            seed: 0,
+            depth_range: (0.5, 10.0),
+            speed_bound: 0.1,
+            epsilon: 0.001,
+            diffusion_px: 1.0,
+            diffusion_shrink: 0.5,
+            window_radius: 1,
+            truncation: 1.0,
+            view_keep_fraction: 0.6,
+            temperature: 0.04,
+            propagation: true,
+            exploration_particles: 1,
+            velocity_prior: 0.25,
+            refine_radius: 3,
+            refine_colour_sigma: 0.3,
+            fresh_fraction: 0.2,
+        }
+    }
+}
+
+impl EngineConfig {
+    /// The paper's method: the defaults with every `handflow` addition off.
+    pub fn paper() -> Self {
+        Self {
+            variant: Variant::Paper,
+            coarse_extra_loops: 0,
+            window_radius: 0,
+            propagation: false,
+            exploration_particles: 0,
+            refine_radius: 0,
+            ..Self::default()
+        }
+    }
+
+    /// The defaults of a variant.
+    pub fn for_variant(variant: Variant) -> Self {
+        match variant {
+            Variant::Paper => Self::paper(),
+            Variant::Handflow => Self::default(),
+        }
+    }
+
+    /// Checks every field; the message names the field at fault.
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = |name: &str, v: f32| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("`{name}` must be a positive number, got {v}"))
+            }
+        };
+        if self.particles_per_ray == 0 || self.particles_per_ray > MAX_PARTICLES_PER_RAY {
+            return Err(format!(
+                "`particles_per_ray` must be between 1 and {MAX_PARTICLES_PER_RAY}, got {}",
+                self.particles_per_ray
+            ));
+        }
+        if self.pyramid_levels == 0 || self.pyramid_levels > 8 {
+            return Err(format!("`pyramid_levels` must be between 1 and 8, got {}", self.pyramid_levels));
+        }
+        if self.noise_loops == 0 {
+            return Err("`noise_loops` must be at least 1".into());
+        }
+        let (near, far) = self.depth_range;
+        positive("depth_range.0", near)?;
+        if !(far.is_finite() && far > near) {
+            return Err(format!("`depth_range` must satisfy 0 < near < far, got ({near}, {far})"));
+        }
+        positive("speed_bound", self.speed_bound)?;
+        positive("epsilon", self.epsilon)?;
+        positive("diffusion_px", self.diffusion_px)?;
+        positive("diffusion_shrink", self.diffusion_shrink)?;
+        positive("truncation", self.truncation)?;
+        positive("temperature", self.temperature)?;
+        positive("velocity_prior", self.velocity_prior)?;
+        positive("refine_colour_sigma", self.refine_colour_sigma)?;
+        if !(self.view_keep_fraction > 0.0 && self.view_keep_fraction <= 1.0) {
+            return Err(format!("`view_keep_fraction` must be in (0, 1], got {}", self.view_keep_fraction));
+        }
+        if !(0.0..=1.0).contains(&self.fresh_fraction) {
+            return Err(format!("`fresh_fraction` must be in [0, 1], got {}", self.fresh_fraction));
+        }
+        if self.window_radius > 4 {
+            return Err(format!("`window_radius` must be at most 4, got {}", self.window_radius));
+        }
+        if self.exploration_particles > 4 {
+            return Err(format!("`exploration_particles` must be at most 4, got {}", self.exploration_particles));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_paper_turns_additions_off() {
+        EngineConfig::default().validate().expect("default valid");
+        let paper = EngineConfig::paper();
+        paper.validate().expect("paper valid");
+        assert_eq!(paper.particles_per_ray, 10);
+        assert_eq!(paper.pyramid_levels * paper.noise_loops, 9);
+        assert!(!paper.propagation);
+        assert_eq!(paper.epsilon, 0.001);
+    }
+
+    #[test]
+    fn bad_fields_are_named() {
+        let c = EngineConfig { particles_per_ray: 0, ..EngineConfig::default() };
+        assert!(c.validate().unwrap_err().contains("particles_per_ray"));
+        let c = EngineConfig { depth_range: (2.0, 1.0), ..EngineConfig::default() };
+        assert!(c.validate().unwrap_err().contains("depth_range"));
+        let c = EngineConfig { temperature: f32::NAN, ..EngineConfig::default() };
+        assert!(c.validate().unwrap_err().contains("temperature"));
+    }
+
+    #[test]
+    fn config_reads_from_partial_toml_like_json() {
+        let c: EngineConfig = serde_json::from_str(r#"{"variant":"paper","particles_per_ray":5}"#).expect("parses");
+        assert_eq!(c.variant, Variant::Paper);
+        assert_eq!(c.particles_per_ray, 5);
+        assert_eq!(c.pyramid_levels, 3);
+    }
+}

@@ -1,0 +1,851 @@
+//! The Scene Particle engine: frames in, weighted particles per ray and a dense per-ray
+//! estimate out.
+
+use std::time::Instant;
+
+use handflow_protocol::Camera;
+use nalgebra::Point2;
+use rayon::prelude::*;
+
+use crate::camera::LevelProjection;
+use crate::config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
+use crate::image::Pyramid;
+use crate::likelihood::{robust_window_cost, variance_likelihood, MatchImage, ReferenceWindow, MAX_IMAGES};
+use crate::particles::{ray_resample, Particle, SearchSpace};
+use crate::refine::{weighted_median_refine, RayEstimate};
+use crate::rng::RayRng;
+
+/// Why the engine refused a configuration or a frame.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum FlowError {
+    /// A configuration field is out of range.
+    #[error("engine configuration: {0}")]
+    Config(String),
+    /// The rig is unusable for the engine.
+    #[error("rig: {0}")]
+    Rig(String),
+    /// A frame set has the wrong number of views.
+    #[error("frame {frame}: expected {expected} views (one per camera), got {got}")]
+    ViewCount {
+        /// Frame number (0-based, in push order).
+        frame: u64,
+        /// Cameras in the rig.
+        expected: usize,
+        /// Views in the frame set.
+        got: usize,
+    },
+    /// A view's byte length does not match its camera's size.
+    #[error("frame {frame}, camera `{camera}`: expected {expected} bytes of RGB8 ({width}x{height}), got {got}")]
+    ViewSize {
+        /// Frame number (0-based, in push order).
+        frame: u64,
+        /// Camera name.
+        camera: String,
+        /// Camera width.
+        width: u32,
+        /// Camera height.
+        height: u32,
+        /// Expected byte count.
+        expected: usize,
+        /// Actual byte count.
+        got: usize,
+    },
+}
+
+/// The dense per-ray output of the reference view at full resolution (row-major).
+#[derive(Clone, Debug, Default)]
+pub struct DenseField {
+    /// Reference image width.
+    pub width: usize,
+    /// Reference image height.
+    pub height: usize,
+    /// Camera-frame depth of each ray's estimate (NaN for an empty ray).
+    pub depth: Vec<f32>,
+    /// World position of each ray's estimate (NaN for an empty ray).
+    pub position: Vec<[f32; 3]>,
+    /// World velocity per frame of each ray's estimate (zero for an empty ray).
+    pub velocity: Vec<[f32; 3]>,
+    /// Confidence in [0, 1] (0 for an empty ray).
+    pub confidence: Vec<f32>,
+}
+
+/// What the last estimate cost.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FrameStats {
+    /// Index (push order) of the frame the estimate is for.
+    pub frame: u64,
+    /// Particle likelihood evaluations.
+    pub evaluations: u64,
+    /// Wall time of the estimate, including normalisation and pyramids of the newest frame.
+    pub seconds: f64,
+    /// Rays holding at least one particle.
+    pub occupied_rays: usize,
+    /// Whether the previous posterior served as the prior.
+    pub used_temporal_prior: bool,
+}
+
+/// A ray grid of the reference camera at one pyramid level.
+struct RayGrid {
+    width: usize,
+    height: usize,
+    /// World direction of each ray, scaled so that `origin + depth * dir` has camera-frame
+    /// depth `depth` in the reference camera.
+    dirs: Vec<[f32; 3]>,
+}
+
+/// The Scene Particle engine of one rig. See the crate documentation.
+pub struct SceneFlowEngine {
+    config: EngineConfig,
+    cameras: Vec<Camera>,
+    reference: usize,
+    /// `projections[level][camera]`.
+    projections: Vec<Vec<LevelProjection>>,
+    /// Ray grids per level (`paper` uses only level 0's: its rays are full-resolution pixels).
+    grids: Vec<RayGrid>,
+    origin: [f32; 3],
+    space: SearchSpace,
+    /// Three frame slots of per-camera pyramids; `ring_newest` is the last pushed.
+    ring: [Vec<Pyramid>; 3],
+    ring_len: usize,
+    ring_newest: usize,
+    frames_pushed: u64,
+    particles: Vec<Particle>,
+    particles_back: Vec<Particle>,
+    counts: Vec<u8>,
+    counts_back: Vec<u8>,
+    best: Vec<Particle>,
+    best_back: Vec<Particle>,
+    estimates: Vec<RayEstimate>,
+    refined: Vec<RayEstimate>,
+    /// Frame index whose posterior `particles` holds at full resolution, if any.
+    posterior_of: Option<u64>,
+    field: DenseField,
+    stats: FrameStats,
+}
+
+/// Frames the estimate looks at, oldest first, as ring slots.
+#[derive(Clone, Copy)]
+struct Window {
+    slots: [usize; 3],
+    len: usize,
+}
+
+impl SceneFlowEngine {
+    /// An engine for `cameras` whose rays are those of `cameras[reference]`.
+    pub fn new(config: EngineConfig, cameras: Vec<Camera>, reference: usize) -> Result<Self, FlowError> {
+        config.validate().map_err(FlowError::Config)?;
+        if cameras.len() < 2 && config.temporal == Temporal::TwoFrame && cameras.is_empty() {
+            return Err(FlowError::Rig("the rig has no camera".into()));
+        }
+        if cameras.is_empty() {
+            return Err(FlowError::Rig("the rig has no camera".into()));
+        }
+        if cameras.len() * 3 > MAX_IMAGES {
+            return Err(FlowError::Rig(format!("at most {} cameras are supported, got {}", MAX_IMAGES / 3, cameras.len())));
+        }
+        let Some(ref_cam) = cameras.get(reference) else {
+            return Err(FlowError::Rig(format!("reference camera {reference} does not exist ({} cameras)", cameras.len())));
+        };
+        let (width, height) = (ref_cam.width as usize, ref_cam.height as usize);
+        let levels = config.pyramid_levels;
+        let projections = (0..levels).map(|l| cameras.iter().map(|c| LevelProjection::new(c, l)).collect()).collect();
+        let grid_levels = if config.variant == Variant::Handflow { levels } else { 1 };
+        let grids: Vec<RayGrid> = (0..grid_levels).map(|l| ray_grid(ref_cam, l)).collect();
+        let centre = ref_cam.centre();
+        let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
+        let baseline = cameras.iter().map(|c| (c.centre() - centre).norm()).fold(0.0f64, f64::max);
+        let focal = ref_cam.matrix[(0, 0)] as f32;
+        // A single camera (or co-located ones) still has temporal parallax; use a nominal
+        // baseline of one hundredth of the near depth so diffusion stays finite.
+        let baseline = (baseline as f32).max(config.depth_range.0 * 0.01);
+        let space = SearchSpace {
+            inverse_depth: (1.0 / config.depth_range.1, 1.0 / config.depth_range.0),
+            speed_bound: config.speed_bound,
+            pixels_per_inverse_depth: focal * baseline,
+            focal_px: focal,
+        };
+        let rays = width * height;
+        let n = config.particles_per_ray;
+        Ok(Self {
+            config,
+            cameras,
+            reference,
+            projections,
+            grids,
+            origin,
+            space,
+            ring: Default::default(),
+            ring_len: 0,
+            ring_newest: 2,
+            frames_pushed: 0,
+            particles: vec![Particle::EMPTY; rays * n],
+            particles_back: vec![Particle::EMPTY; rays * n],
+            counts: vec![0; rays],
+            counts_back: vec![0; rays],
+            best: vec![Particle::EMPTY; rays],
+            best_back: vec![Particle::EMPTY; rays],
+            estimates: vec![RayEstimate::default(); rays],
+            refined: vec![RayEstimate::default(); rays],
+            posterior_of: None,
+            field: DenseField {
+                width,
+                height,
+                depth: vec![f32::NAN; rays],
+                position: vec![[f32::NAN; 3]; rays],
+                velocity: vec![[0.0; 3]; rays],
+                confidence: vec![0.0; rays],
+            },
+            stats: FrameStats::default(),
+        })
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &EngineConfig {
+        &self.config
+    }
+
+    /// The cameras, in rig order.
+    pub fn cameras(&self) -> &[Camera] {
+        &self.cameras
+    }
+
+    /// Index of the reference camera.
+    pub fn reference(&self) -> usize {
+        self.reference
+    }
+
+    /// Cost of the last estimate.
+    pub fn stats(&self) -> FrameStats {
+        self.stats
+    }
+
+    /// The last estimate.
+    pub fn field(&self) -> &DenseField {
+        &self.field
+    }
+
+    /// The particles of full-resolution ray `ray` after the last estimate (empty for an
+    /// empty ray). World position of a particle: [`SceneFlowEngine::particle_position`].
+    pub fn ray_particles(&self, ray: usize) -> &[Particle] {
+        let n = self.config.particles_per_ray;
+        &self.particles[ray * n..ray * n + usize::from(self.counts[ray])]
+    }
+
+    /// World position of a particle of full-resolution ray `ray`.
+    pub fn particle_position(&self, ray: usize, particle: &Particle) -> [f32; 3] {
+        point_on_ray(self.origin, self.grids[0].dirs[ray], particle.depth)
+    }
+
+    /// Forgets every frame and the posterior (a new, unrelated stream follows).
+    pub fn reset(&mut self) {
+        self.ring_len = 0;
+        self.posterior_of = None;
+    }
+
+    /// Adds the next synchronised frame set (RGB8, one view per camera in rig order) and
+    /// returns the estimate it completes: the newest frame with the two-frame likelihood,
+    /// or the previous one with forwards/backwards (one frame late). Frames that complete
+    /// nothing yet return `None`.
+    pub fn push_frame(&mut self, views: &[&[u8]]) -> Result<Option<&DenseField>, FlowError> {
+        let started = Instant::now();
+        let frame = self.frames_pushed;
+        if views.len() != self.cameras.len() {
+            return Err(FlowError::ViewCount { frame, expected: self.cameras.len(), got: views.len() });
+        }
+        for (cam, view) in self.cameras.iter().zip(views) {
+            let expected = cam.width as usize * cam.height as usize * 3;
+            if view.len() != expected {
+                return Err(FlowError::ViewSize {
+                    frame,
+                    camera: cam.name.clone(),
+                    width: cam.width,
+                    height: cam.height,
+                    expected,
+                    got: view.len(),
+                });
+            }
+        }
+        let slot = (self.ring_newest + 1) % 3;
+        let levels = self.config.pyramid_levels;
+        let pyramids = &mut self.ring[slot];
+        pyramids.resize_with(self.cameras.len(), Pyramid::default);
+        pyramids.par_iter_mut().zip(self.cameras.par_iter()).zip(views.par_iter()).for_each(|((pyr, cam), view)| {
+            pyr.rebuild(cam.width as usize, cam.height as usize, view, levels);
+        });
+        self.ring_newest = slot;
+        self.ring_len = (self.ring_len + 1).min(3);
+        self.frames_pushed += 1;
+        let window = match self.config.temporal {
+            Temporal::TwoFrame if self.ring_len >= 2 => Some(self.window(2)),
+            Temporal::ForwardsBackwards if self.ring_len >= 3 => Some(self.window(3)),
+            _ => None,
+        };
+        match window {
+            Some(w) => {
+                self.estimate(w, started);
+                Ok(Some(&self.field))
+            }
+            None => Ok(None),
+        }
+    }
+
+    /// Ends a stream: with forwards/backwards, estimates the last frame with the two-frame
+    /// likelihood (there is no t+1). Returns `None` when there is nothing left to estimate.
+    pub fn flush(&mut self) -> Option<&DenseField> {
+        let started = Instant::now();
+        let pending = self.config.temporal == Temporal::ForwardsBackwards && self.ring_len >= 2;
+        self.ring_len = 0;
+        if !pending {
+            return None;
+        }
+        let w = self.window(2);
+        self.estimate(w, started);
+        Some(&self.field)
+    }
+
+    /// The `len` newest frames, oldest first.
+    fn window(&self, len: usize) -> Window {
+        let mut slots = [0; 3];
+        for (k, slot) in slots.iter_mut().enumerate().take(len) {
+            *slot = (self.ring_newest + 3 - (len - 1 - k)) % 3;
+        }
+        Window { slots, len }
+    }
+
+    /// Runs the filter for the frame at index 1 of `window` (t-1, t[, t+1]).
+    fn estimate(&mut self, window: Window, started: Instant) {
+        let frame = self.frames_pushed - window.len as u64 + 1;
+        let _span = tracing::debug_span!("scene_flow", frame, variant = self.config.variant.name()).entered();
+        let use_prior = self.posterior_of == Some(frame.wrapping_sub(1));
+        let mut evaluations = 0u64;
+        if use_prior {
+            self.carry_posterior_forward(frame);
+        }
+        let levels = self.config.pyramid_levels;
+        let per_level_grid = self.config.variant == Variant::Handflow;
+        let top = levels - 1;
+        let top_grid = if per_level_grid { top } else { 0 };
+        self.seed_top_level(top_grid, use_prior, frame);
+        for level in (0..levels).rev() {
+            let grid = if per_level_grid { level } else { 0 };
+            if per_level_grid && level != top {
+                self.upsample_particles(level + 1, level);
+            }
+            let extra = if level == top { self.config.coarse_extra_loops } else { 0 };
+            let loops = self.config.noise_loops + if per_level_grid { extra } else { 0 };
+            for it in 0..loops {
+                let sigma_level_px = self.config.diffusion_px * self.config.diffusion_shrink.powi(it as i32);
+                let last = level == 0 && it + 1 == loops;
+                let stage = (level * 64 + it) as u64;
+                evaluations += self.iterate(window, level, grid, sigma_level_px, last, frame, stage);
+                std::mem::swap(&mut self.best, &mut self.best_back);
+            }
+        }
+        self.publish_field(window);
+        self.posterior_of = Some(frame);
+        let occupied_rays = self.counts.iter().filter(|&&c| c > 0).count();
+        self.stats = FrameStats {
+            frame,
+            evaluations,
+            seconds: started.elapsed().as_secs_f64(),
+            occupied_rays,
+            used_temporal_prior: use_prior,
+        };
+    }
+
+    /// The prior of a new frame: the previous posterior moved by its own velocity
+    /// (constant-velocity model), each particle re-assigned to the reference ray it now
+    /// projects onto; rays receiving more than N keep a random N; a share of each ray is
+    /// replaced by fresh random particles; empty rays are refilled from neighbours (dense)
+    /// or stay empty (sparse).
+    fn carry_posterior_forward(&mut self, frame: u64) {
+        let n = self.config.particles_per_ray;
+        let grid = &self.grids[0];
+        let (w, h) = (grid.width, grid.height);
+        let reference = &self.projections[0][self.reference];
+        self.counts_back.iter_mut().for_each(|c| *c = 0);
+        let mut seen = vec![0u32; 0];
+        seen.clear();
+        let mut rng = RayRng::for_item(self.config.seed, frame, 1 << 20, 0);
+        for ray in 0..w * h {
+            let count = usize::from(self.counts[ray]);
+            for p in &self.particles[ray * n..ray * n + count] {
+                let moved = add(point_on_ray(self.origin, grid.dirs[ray], p.depth), p.velocity);
+                let Some([u, v]) = reference.project(moved) else { continue };
+                let (x, y) = (u.round(), v.round());
+                if !(x >= 0.0 && y >= 0.0 && x < w as f32 && y < h as f32) {
+                    continue;
+                }
+                let target = y as usize * w + x as usize;
+                let depth = reference.to_camera(moved)[2];
+                if !(depth > 0.0) {
+                    continue;
+                }
+                let slot_count = usize::from(self.counts_back[target]);
+                let carried = Particle { depth, velocity: p.velocity, weight: p.weight, cost: f32::INFINITY };
+                if slot_count < n {
+                    self.particles_back[target * n + slot_count] = carried;
+                    self.counts_back[target] += 1;
+                } else {
+                    // Keep a uniformly random subset of the arrivals (approximate reservoir:
+                    // the arrival count is not tracked per ray, so a fixed replacement rate).
+                    let k = (rng.uniform() * (2 * n) as f32) as usize;
+                    if k < n {
+                        self.particles_back[target * n + k] = carried;
+                    }
+                }
+            }
+        }
+        let fresh = (self.config.fresh_fraction * n as f32).round() as usize;
+        let dense = self.config.coverage == Coverage::Dense;
+        let (seed, space) = (self.config.seed, self.space);
+        let (back, counts_back) = (&self.particles_back, &self.counts_back);
+        self.particles
+            .par_chunks_mut(n)
+            .zip(self.counts.par_iter_mut())
+            .enumerate()
+            .for_each(|(ray, (out, count))| {
+                let mut rng = RayRng::for_item(seed, frame, 1 << 21, ray as u64);
+                let mut have = usize::from(counts_back[ray]);
+                out[..have].copy_from_slice(&back[ray * n..ray * n + have]);
+                if have == 0 && dense {
+                    have = refill_from_neighbours(back, counts_back, n, w, h, ray, out, &mut rng);
+                }
+                if have == 0 {
+                    *count = 0;
+                    return;
+                }
+                // Duplicate to a full ray, then refresh a share for exploration.
+                for k in have..n {
+                    out[k] = out[(rng.uniform() * have as f32) as usize % have];
+                }
+                for slot in out.iter_mut().skip(n - fresh.min(n - 1)) {
+                    *slot = space.random_particle(&mut rng);
+                }
+                for slot in out.iter_mut() {
+                    slot.weight = 1.0 / n as f32;
+                }
+                *count = n as u8;
+            });
+    }
+
+    /// Initial particles on the coarsest grid: from the carried prior (sampled down from
+    /// full resolution) or, without a prior, from the broad initial prior.
+    fn seed_top_level(&mut self, grid_level: usize, use_prior: bool, frame: u64) {
+        let n = self.config.particles_per_ray;
+        if use_prior && grid_level == 0 {
+            return; // `particles` already holds the prior at full resolution.
+        }
+        let (gw, gh) = (self.grids[grid_level].width, self.grids[grid_level].height);
+        let (fw, fh) = (self.grids[0].width, self.grids[0].height);
+        let space = self.space;
+        let seed = self.config.seed;
+        if use_prior {
+            // Coarse ray (i, j) covers full-resolution pixels [i*s, (i+1)*s): take the middle one.
+            let s = 1usize << grid_level;
+            std::mem::swap(&mut self.particles, &mut self.particles_back);
+            std::mem::swap(&mut self.counts, &mut self.counts_back);
+            let (src, src_counts) = (&self.particles_back, &self.counts_back);
+            self.particles[..gw * gh * n]
+                .par_chunks_mut(n)
+                .zip(self.counts[..gw * gh].par_iter_mut())
+                .enumerate()
+                .for_each(|(ray, (out, count))| {
+                    let (i, j) = (ray % gw, ray / gw);
+                    let fx = (i * s + s / 2).min(fw - 1);
+                    let fy = (j * s + s / 2).min(fh - 1);
+                    let from = fy * fw + fx;
+                    *count = src_counts[from];
+                    out.copy_from_slice(&src[from * n..from * n + n]);
+                });
+            return;
+        }
+        let sparse_empty = false;
+        self.particles[..gw * gh * n]
+            .par_chunks_mut(n)
+            .zip(self.counts[..gw * gh].par_iter_mut())
+            .enumerate()
+            .for_each(|(ray, (out, count))| {
+                let mut rng = RayRng::for_item(seed, frame, 1 << 22, ray as u64);
+                for slot in out.iter_mut() {
+                    *slot = space.random_particle(&mut rng);
+                    slot.weight = 1.0 / n as f32;
+                }
+                *count = if sparse_empty { 0 } else { n as u8 };
+            });
+    }
+
+    /// Coarse-to-fine hand-over (`handflow`): every ray of the finer grid starts from the
+    /// particles of the coarse ray it lies in.
+    fn upsample_particles(&mut self, coarse: usize, fine: usize) {
+        let n = self.config.particles_per_ray;
+        let (cw, ch) = (self.grids[coarse].width, self.grids[coarse].height);
+        let (fw, fh) = (self.grids[fine].width, self.grids[fine].height);
+        std::mem::swap(&mut self.particles, &mut self.particles_back);
+        std::mem::swap(&mut self.counts, &mut self.counts_back);
+        std::mem::swap(&mut self.best, &mut self.best_back);
+        let (src, src_counts) = (&self.particles_back, &self.counts_back);
+        let coarse_best = &self.best_back;
+        self.particles[..fw * fh * n]
+            .par_chunks_mut(n)
+            .zip(self.counts[..fw * fh].par_iter_mut())
+            .zip(self.best[..fw * fh].par_iter_mut())
+            .enumerate()
+            .for_each(|(ray, ((out, count), best))| {
+                let (i, j) = ((ray % fw) / 2, (ray / fw) / 2);
+                let from = j.min(ch - 1) * cw + i.min(cw - 1);
+                *count = src_counts[from];
+                out.copy_from_slice(&src[from * n..from * n + n]);
+                *best = coarse_best[from];
+            });
+    }
+
+    /// One noise loop on one level: diffuse, evaluate, weight, resample, for every ray in
+    /// parallel. Returns the number of likelihood evaluations.
+    #[allow(clippy::too_many_arguments)]
+    fn iterate(&mut self, window: Window, level: usize, grid_level: usize, sigma_level_px: f32, last: bool, frame: u64, stage: u64) -> u64 {
+        let n = self.config.particles_per_ray;
+        let grid = &self.grids[grid_level];
+        let (gw, gh) = (grid.width, grid.height);
+        let mut images_buf: [Option<MatchImage<'_>>; MAX_IMAGES] = [None; MAX_IMAGES];
+        let mut n_images = 0;
+        for (k, &slot) in window.slots.iter().enumerate().take(window.len) {
+            let offset = k as f32 - 1.0;
+            for (q, pyr) in self.ring[slot].iter().enumerate() {
+                images_buf[n_images] = Some(MatchImage {
+                    offset,
+                    image: pyr.level(level),
+                    projection: &self.projections[level][q],
+                    is_reference_now: k == 1 && q == self.reference,
+                });
+                n_images += 1;
+            }
+        }
+        let images: Vec<MatchImage<'_>> = images_buf[..n_images].iter().flatten().copied().collect();
+        let ctx = IterationContext {
+            config: &self.config,
+            space: self.space,
+            images: &images,
+            reference_image: self.ring[window.slots[1]][self.reference].level(level),
+            dirs: &grid.dirs,
+            origin: self.origin,
+            grid_width: gw,
+            grid_height: gh,
+            level,
+            per_level_grid: self.config.variant == Variant::Handflow,
+            sigma_px: sigma_level_px * (1u32 << level) as f32,
+            keep: ((n_images - 1) as f32 * self.config.view_keep_fraction).ceil().max(1.0) as usize,
+            best_prev: &self.best,
+            top_level: level + 1 == self.config.pyramid_levels,
+            last,
+            frame,
+            stage,
+        };
+        self.particles[..gw * gh * n]
+            .par_chunks_mut(n)
+            .zip(self.counts[..gw * gh].par_iter_mut())
+            .zip(self.best_back[..gw * gh].par_iter_mut())
+            .zip(self.estimates[..gw * gh].par_iter_mut())
+            .enumerate()
+            .map(|(ray, (((particles, count), best), estimate))| ctx.update_ray(ray, particles, count, best, estimate))
+            .sum()
+    }
+
+    /// Turns the per-ray estimates (refined for `handflow`) into the dense field.
+    fn publish_field(&mut self, window: Window) {
+        let refine = self.config.variant == Variant::Handflow && self.config.refine_radius > 0;
+        let source = if refine {
+            let guide = self.ring[window.slots[1]][self.reference].level(0);
+            weighted_median_refine(&self.estimates, &mut self.refined, guide, self.config.refine_radius, self.config.refine_colour_sigma);
+            &self.refined
+        } else {
+            &self.estimates
+        };
+        let dirs = &self.grids[0].dirs;
+        let origin = self.origin;
+        let field = &mut self.field;
+        field
+            .depth
+            .par_iter_mut()
+            .zip(field.position.par_iter_mut())
+            .zip(field.velocity.par_iter_mut())
+            .zip(field.confidence.par_iter_mut())
+            .enumerate()
+            .for_each(|(ray, (((depth, position), velocity), confidence))| {
+                let e = source[ray];
+                if e.confidence > 0.0 && e.inverse_depth > 0.0 {
+                    *depth = 1.0 / e.inverse_depth;
+                    *position = point_on_ray(origin, dirs[ray], *depth);
+                    *velocity = e.velocity;
+                    *confidence = e.confidence;
+                } else {
+                    *depth = f32::NAN;
+                    *position = [f32::NAN; 3];
+                    *velocity = [0.0; 3];
+                    *confidence = 0.0;
+                }
+            });
+    }
+}
+
+/// Read-only state of one noise loop, shared by all rays.
+struct IterationContext<'a> {
+    config: &'a EngineConfig,
+    space: SearchSpace,
+    images: &'a [MatchImage<'a>],
+    reference_image: &'a crate::image::ColourImage,
+    dirs: &'a [[f32; 3]],
+    origin: [f32; 3],
+    grid_width: usize,
+    grid_height: usize,
+    level: usize,
+    per_level_grid: bool,
+    /// Diffusion in full-resolution pixels.
+    sigma_px: f32,
+    keep: usize,
+    best_prev: &'a [Particle],
+    top_level: bool,
+    last: bool,
+    frame: u64,
+    stage: u64,
+}
+
+/// Candidates a ray weighs per iteration: its particles, four neighbours' best, exploration.
+const MAX_CANDIDATES: usize = MAX_PARTICLES_PER_RAY + 8;
+
+impl IterationContext<'_> {
+    fn update_ray(&self, ray: usize, particles: &mut [Particle], count: &mut u8, best: &mut Particle, estimate: &mut RayEstimate) -> u64 {
+        let have = usize::from(*count);
+        if have == 0 {
+            *best = Particle::EMPTY;
+            if self.last {
+                *estimate = RayEstimate::default();
+            }
+            return 0;
+        }
+        let mut rng = RayRng::for_item(self.config.seed, self.frame, self.stage, ray as u64);
+        match self.config.variant {
+            Variant::Paper => self.update_ray_paper(ray, &mut particles[..have], best, estimate, &mut rng),
+            Variant::Handflow => self.update_ray_handflow(ray, particles, count, best, estimate, &mut rng),
+        }
+    }
+
+    /// The paper: diffuse every particle, weight by equation 5 (the average of the
+    /// normalised likelihood and the previous weight), resample the ray.
+    fn update_ray_paper(&self, ray: usize, particles: &mut [Particle], best: &mut Particle, estimate: &mut RayEstimate, rng: &mut RayRng) -> u64 {
+        let dir = self.dirs[ray];
+        let mut cands = [Particle::EMPTY; MAX_PARTICLES_PER_RAY];
+        let mut likelihood = [0f32; MAX_PARTICLES_PER_RAY];
+        let n = particles.len();
+        let mut total = 0.0;
+        for k in 0..n {
+            let p = self.space.diffuse(&particles[k], self.sigma_px, rng);
+            let pos = point_on_ray(self.origin, dir, p.depth);
+            let l = variance_likelihood(self.images, pos, p.velocity, self.config.epsilon);
+            cands[k] = Particle { cost: 1.0 / l, ..p };
+            likelihood[k] = l;
+            total += l;
+        }
+        let prior_total: f32 = cands[..n].iter().map(|p| p.weight).sum::<f32>().max(f32::MIN_POSITIVE);
+        let mut weights = [0f32; MAX_PARTICLES_PER_RAY];
+        let mut best_k = 0;
+        for k in 0..n {
+            weights[k] = 0.5 * (likelihood[k] / total + cands[k].weight / prior_total);
+            cands[k].weight = weights[k];
+            if weights[k] > weights[best_k] {
+                best_k = k;
+            }
+        }
+        *best = cands[best_k];
+        if self.last {
+            *estimate = weighted_mean(&cands[..n], &weights[..n], None, 1.0 / cands[best_k].cost.max(1e-12) / (1.0 / self.config.epsilon));
+        }
+        if !ray_resample(&cands[..n], &weights[..n], particles, rng) {
+            particles.copy_from_slice(&cands[..n]);
+        }
+        n as u64
+    }
+
+    /// handflow: the ray's particles (the best kept as it is, the rest diffused), the best
+    /// particle of each neighbour and a few random ones compete under the robust windowed
+    /// cost and the velocity prior; the ray keeps N of them by systematic resampling, always
+    /// including the best.
+    fn update_ray_handflow(
+        &self,
+        ray: usize,
+        particles: &mut [Particle],
+        count: &mut u8,
+        best: &mut Particle,
+        estimate: &mut RayEstimate,
+        rng: &mut RayRng,
+    ) -> u64 {
+        let n = self.config.particles_per_ray;
+        let have = usize::from(*count);
+        let dir = self.dirs[ray];
+        let (x, y) = (ray % self.grid_width, ray / self.grid_width);
+        let reference = if self.per_level_grid {
+            ReferenceWindow::gather(self.reference_image, x, y, self.config.window_radius)
+        } else {
+            ReferenceWindow::gather(self.reference_image, x >> self.level, y >> self.level, self.config.window_radius)
+        };
+        let mut cands = [Particle::EMPTY; MAX_CANDIDATES];
+        let mut m = 0;
+        // The previous best survives undiffused (elitism): a ray never loses its best
+        // hypothesis to a random step.
+        let elite = if best.is_valid() { *best } else { particles[0] };
+        cands[m] = elite;
+        m += 1;
+        for p in particles.iter().take(have).skip(1) {
+            cands[m] = self.space.diffuse(p, self.sigma_px, rng);
+            m += 1;
+        }
+        if have == 1 {
+            cands[m] = self.space.diffuse(&particles[0], self.sigma_px, rng);
+            m += 1;
+        }
+        if self.config.propagation {
+            let (w, h) = (self.grid_width, self.grid_height);
+            let neighbours = [
+                (x > 0).then(|| ray - 1),
+                (x + 1 < w).then(|| ray + 1),
+                (y > 0).then(|| ray - w),
+                (y + 1 < h).then(|| ray + w),
+            ];
+            for nb in neighbours.into_iter().flatten() {
+                let b = self.best_prev[nb];
+                if b.is_valid() {
+                    cands[m] = b;
+                    m += 1;
+                }
+            }
+        }
+        if self.top_level {
+            for _ in 0..self.config.exploration_particles {
+                cands[m] = self.space.random_particle(rng);
+                m += 1;
+            }
+        }
+        let mut log_w = [0f32; MAX_CANDIDATES];
+        let prior_scale = 1.0 / (2.0 * (self.config.velocity_prior * self.config.speed_bound).powi(2));
+        let inv_t = 1.0 / self.config.temperature;
+        let mut best_k = 0;
+        for k in 0..m {
+            let p = &mut cands[k];
+            let pos = point_on_ray(self.origin, dir, p.depth);
+            p.cost = robust_window_cost(self.images, &reference, pos, p.velocity, self.config.truncation, self.keep);
+            let v = p.velocity;
+            log_w[k] = -p.cost * inv_t - (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * prior_scale;
+            if log_w[k] > log_w[best_k] {
+                best_k = k;
+            }
+        }
+        let mut weights = [0f32; MAX_CANDIDATES];
+        for k in 0..m {
+            weights[k] = (log_w[k] - log_w[best_k]).exp();
+        }
+        *best = cands[best_k];
+        if self.last {
+            let confidence = (-cands[best_k].cost * inv_t * 0.5).exp();
+            *estimate = weighted_mean(&cands[..m], &weights[..m], Some(&cands[best_k]), confidence.max(1e-6));
+        }
+        particles[0] = cands[best_k];
+        particles[0].weight = 1.0 / n as f32;
+        if !ray_resample(&cands[..m], &weights[..m], &mut particles[1..n], rng) {
+            for slot in particles[1..n].iter_mut() {
+                *slot = cands[best_k];
+            }
+        }
+        for p in particles[..n].iter_mut() {
+            p.weight = 1.0 / n as f32;
+        }
+        *count = n as u8;
+        m as u64
+    }
+}
+
+/// The weighted mean of a ray's particles (the note on the prototype found it beats the
+/// single best particle). With `mode` given, only particles within about a pixel of that
+/// particle take part, so two separated modes are not averaged into a point between them.
+fn weighted_mean(particles: &[Particle], weights: &[f32], mode: Option<&Particle>, confidence: f32) -> RayEstimate {
+    let mut sum_w = 0.0f32;
+    let mut inverse = 0.0f32;
+    let mut vel = [0.0f32; 3];
+    for (p, &w) in particles.iter().zip(weights) {
+        if let Some(m) = mode {
+            let rel_depth = (p.depth - m.depth).abs() / m.depth;
+            let dv = (p.velocity[0] - m.velocity[0]).abs() + (p.velocity[1] - m.velocity[1]).abs() + (p.velocity[2] - m.velocity[2]).abs();
+            // ~1% of depth is about a pixel of disparity at the far end of typical rigs;
+            // velocities compare at the same relative scale.
+            if rel_depth > 0.02 || dv > 0.02 * m.depth.max(1e-3) {
+                continue;
+            }
+        }
+        sum_w += w;
+        inverse += w / p.depth;
+        for k in 0..3 {
+            vel[k] += w * p.velocity[k];
+        }
+    }
+    if !(sum_w > 0.0) {
+        return RayEstimate::default();
+    }
+    RayEstimate {
+        inverse_depth: inverse / sum_w,
+        velocity: vel.map(|v| v / sum_w),
+        confidence: confidence.clamp(1e-6, 1.0),
+    }
+}
+
+/// Dense mode: an empty ray copies the particles of a random non-empty ray within a few
+/// pixels. Returns how many particles were copied.
+#[allow(clippy::too_many_arguments)]
+fn refill_from_neighbours(src: &[Particle], counts: &[u8], n: usize, w: usize, h: usize, ray: usize, out: &mut [Particle], rng: &mut RayRng) -> usize {
+    let (x, y) = ((ray % w) as isize, (ray / w) as isize);
+    for radius in 1..=4isize {
+        for _ in 0..8 {
+            let nx = x + (rng.uniform() * (2 * radius + 1) as f32) as isize - radius;
+            let ny = y + (rng.uniform() * (2 * radius + 1) as f32) as isize - radius;
+            if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
+                continue;
+            }
+            let from = ny as usize * w + nx as usize;
+            let c = usize::from(counts[from]);
+            if c > 0 {
+                out[..c].copy_from_slice(&src[from * n..from * n + c]);
+                return c;
+            }
+        }
+    }
+    0
+}
+
+/// Rays of the reference camera through the pixel centres of pyramid level `level`.
+fn ray_grid(camera: &Camera, level: usize) -> RayGrid {
+    let s = 1usize << level;
+    let width = (camera.width as usize).div_ceil(s).max(1);
+    let height = (camera.height as usize).div_ceil(s).max(1);
+    let rotation_t = camera.rotation.matrix().transpose();
+    let mut dirs = Vec::with_capacity(width * height);
+    for j in 0..height {
+        for i in 0..width {
+            // Level pixel centre in full-resolution coordinates.
+            let u = (i as f64 + 0.5) * s as f64 - 0.5;
+            let v = (j as f64 + 0.5) * s as f64 - 0.5;
+            let xn = camera.pixel_to_normalised(&Point2::new(u, v));
+            let d = rotation_t * nalgebra::Vector3::new(xn.x, xn.y, 1.0);
+            dirs.push([d.x as f32, d.y as f32, d.z as f32]);
+        }
+    }
+    RayGrid { width, height, dirs }
+}
+
+#[inline(always)]
+fn point_on_ray(origin: [f32; 3], dir: [f32; 3], depth: f32) -> [f32; 3] {
+    [origin[0] + depth * dir[0], origin[1] + depth * dir[1], origin[2] + depth * dir[2]]
+}
+
+#[inline(always)]
+fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}

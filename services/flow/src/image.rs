@@ -1,0 +1,281 @@
+//! Normalised colour images: the engine's own pixel storage.
+//!
+//! Pixels are four `f32` (R, G, B, and a zero pad) so that one bilinear tap is one aligned
+//! 16-byte load the compiler can vectorise. Images are normalised per camera (section 2.2 of
+//! the paper): every channel loses its own mean, and all channels share one scale so that the
+//! image has unit variance. That removes per-camera gain, offset and colour cast while keeping
+//! colour.
+
+/// One pixel: R, G, B and an unused pad lane (always zero).
+pub type Rgba = [f32; 4];
+
+/// A normalised colour image, row-major.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ColourImage {
+    width: usize,
+    height: usize,
+    pixels: Vec<Rgba>,
+}
+
+impl ColourImage {
+    /// A black image; the buffer is reused by [`ColourImage::resize`] and the normalisers.
+    pub fn new(width: usize, height: usize) -> Self {
+        Self {
+            width,
+            height,
+            pixels: vec![[0.0; 4]; width * height],
+        }
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// All pixels, row-major.
+    pub fn pixels(&self) -> &[Rgba] {
+        &self.pixels
+    }
+
+    /// All pixels, row-major, writable.
+    pub fn pixels_mut(&mut self) -> &mut [Rgba] {
+        &mut self.pixels
+    }
+
+    /// Reshapes the image, reallocating only when it grows.
+    pub fn resize(&mut self, width: usize, height: usize) {
+        self.width = width;
+        self.height = height;
+        self.pixels.resize(width * height, [0.0; 4]);
+    }
+
+    /// The pixel at integer coordinates (no bounds forgiveness: callers clamp).
+    #[inline(always)]
+    pub fn at(&self, x: usize, y: usize) -> Rgba {
+        self.pixels[y * self.width + x]
+    }
+
+    /// Fills `self` from interleaved RGB8 and normalises it to zero mean per channel and unit
+    /// variance over all channels. A flat image (no variance) is left at zero mean, unscaled.
+    pub fn set_normalised_from_rgb8(&mut self, width: usize, height: usize, rgb: &[u8]) {
+        debug_assert_eq!(rgb.len(), width * height * 3);
+        self.resize(width, height);
+        let n = (width * height).max(1) as f64;
+        let mut sum = [0f64; 3];
+        let mut sum_sq = [0f64; 3];
+        for px in rgb.chunks_exact(3) {
+            for c in 0..3 {
+                let v = f64::from(px[c]);
+                sum[c] += v;
+                sum_sq[c] += v * v;
+            }
+        }
+        let mean = sum.map(|s| s / n);
+        let variance: f64 = (0..3).map(|c| sum_sq[c] / n - mean[c] * mean[c]).sum::<f64>() / 3.0;
+        let scale = if variance > 1e-9 { 1.0 / variance.sqrt() } else { 1.0 };
+        for (dst, px) in self.pixels.iter_mut().zip(rgb.chunks_exact(3)) {
+            *dst = [
+                ((f64::from(px[0]) - mean[0]) * scale) as f32,
+                ((f64::from(px[1]) - mean[1]) * scale) as f32,
+                ((f64::from(px[2]) - mean[2]) * scale) as f32,
+                0.0,
+            ];
+        }
+    }
+
+    /// Bilinear sample at subpixel `(x, y)` (pixel centres at integers), or `None` when the
+    /// point lies outside the image: a view that does not see a point must not vote on it.
+    #[inline(always)]
+    pub fn sample(&self, x: f32, y: f32) -> Option<Rgba> {
+        let max_x = (self.width - 1) as f32;
+        let max_y = (self.height - 1) as f32;
+        if !(x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y) {
+            return None;
+        }
+        let ix = (x as usize).min(self.width.saturating_sub(2));
+        let iy = (y as usize).min(self.height.saturating_sub(2));
+        let fx = x - ix as f32;
+        let fy = y - iy as f32;
+        Some(self.bilinear_at(ix, iy, fx, fy))
+    }
+
+    /// Bilinear interpolation inside the 2x2 block whose top-left texel is `(ix, iy)`.
+    /// The caller guarantees `ix + 1 < width` and `iy + 1 < height` (or a 1-pixel axis).
+    #[inline(always)]
+    pub fn bilinear_at(&self, ix: usize, iy: usize, fx: f32, fy: f32) -> Rgba {
+        let w = self.width;
+        let x1 = (ix + 1).min(w - 1);
+        let y1 = (iy + 1).min(self.height - 1);
+        let a = self.pixels[iy * w + ix];
+        let b = self.pixels[iy * w + x1];
+        let c = self.pixels[y1 * w + ix];
+        let d = self.pixels[y1 * w + x1];
+        let mut out = [0.0; 4];
+        for k in 0..4 {
+            let top = a[k] + (b[k] - a[k]) * fx;
+            let bottom = c[k] + (d[k] - c[k]) * fx;
+            out[k] = top + (bottom - top) * fy;
+        }
+        out
+    }
+
+    /// Writes into `dst` this image halved: a separable [1 3 3 1]/8 filter centred between
+    /// each pair of pixels, so that pixel `i` of the coarse image sits at `2i + 0.5` of this
+    /// one (the convention [`crate::camera::LevelProjection`] uses) and aliasing is damped.
+    pub fn downsample_into(&self, dst: &mut ColourImage, scratch: &mut Vec<Rgba>) {
+        let (w, h) = (self.width, self.height);
+        let (cw, ch) = (w.div_ceil(2).max(1), h.div_ceil(2).max(1));
+        dst.resize(cw, ch);
+        scratch.clear();
+        scratch.resize(cw * h, [0.0; 4]);
+        const TAPS: [f32; 4] = [0.125, 0.375, 0.375, 0.125];
+        let clamp = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
+        for y in 0..h {
+            let row = &self.pixels[y * w..(y + 1) * w];
+            for cx in 0..cw {
+                let mut acc = [0.0f32; 4];
+                for (t, weight) in TAPS.iter().enumerate() {
+                    let p = row[clamp(2 * cx as isize - 1 + t as isize, w)];
+                    for k in 0..4 {
+                        acc[k] += weight * p[k];
+                    }
+                }
+                scratch[y * cw + cx] = acc;
+            }
+        }
+        for cy in 0..ch {
+            for cx in 0..cw {
+                let mut acc = [0.0f32; 4];
+                for (t, weight) in TAPS.iter().enumerate() {
+                    let p = scratch[clamp(2 * cy as isize - 1 + t as isize, h) * cw + cx];
+                    for k in 0..4 {
+                        acc[k] += weight * p[k];
+                    }
+                }
+                dst.pixels[cy * cw + cx] = acc;
+            }
+        }
+    }
+}
+
+/// A coarse-to-fine stack: level 0 is full resolution, each further level half the size.
+#[derive(Clone, Debug, Default)]
+pub struct Pyramid {
+    levels: Vec<ColourImage>,
+    scratch: Vec<Rgba>,
+}
+
+impl Pyramid {
+    /// Rebuilds the pyramid from RGB8 in place (buffers are reused across frames).
+    pub fn rebuild(&mut self, width: usize, height: usize, rgb: &[u8], levels: usize) {
+        let levels = levels.max(1);
+        self.levels.resize_with(levels, ColourImage::default);
+        self.levels[0].set_normalised_from_rgb8(width, height, rgb);
+        for l in 1..levels {
+            let (finer, coarser) = self.levels.split_at_mut(l);
+            finer[l - 1].downsample_into(&mut coarser[0], &mut self.scratch);
+        }
+    }
+
+    /// Level `l` (0 = full resolution).
+    pub fn level(&self, l: usize) -> &ColourImage {
+        &self.levels[l]
+    }
+
+    /// Number of levels.
+    pub fn len(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// True when nothing has been built yet.
+    pub fn is_empty(&self) -> bool {
+        self.levels.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(width: usize, height: usize) -> ColourImage {
+        let mut img = ColourImage::new(width, height);
+        for y in 0..height {
+            for x in 0..width {
+                img.pixels_mut()[y * width + x] = [x as f32, y as f32, (x + 2 * y) as f32, 0.0];
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn bilinear_sampling_is_exact_on_a_linear_ramp() {
+        let img = ramp(7, 5);
+        let s = img.sample(2.25, 3.5).expect("inside");
+        assert!((s[0] - 2.25).abs() < 1e-6);
+        assert!((s[1] - 3.5).abs() < 1e-6);
+        assert!((s[2] - 9.25).abs() < 1e-5);
+        // The far border itself is inside.
+        let s = img.sample(6.0, 4.0).expect("border is inside");
+        assert_eq!(s[0], 6.0);
+        assert_eq!(s[1], 4.0);
+    }
+
+    #[test]
+    fn samples_outside_the_image_are_refused() {
+        let img = ramp(4, 4);
+        assert!(img.sample(-0.01, 1.0).is_none());
+        assert!(img.sample(1.0, 3.01).is_none());
+        assert!(img.sample(f32::NAN, 1.0).is_none());
+    }
+
+    #[test]
+    fn normalisation_gives_zero_mean_unit_variance_whatever_the_gain() {
+        let (w, h) = (16, 8);
+        let base: Vec<u8> = (0..w * h * 3).map(|i| ((i * 37) % 200) as u8).collect();
+        let gained: Vec<u8> = base.iter().map(|&v| v / 2 + 20).collect();
+        let mut a = ColourImage::default();
+        let mut b = ColourImage::default();
+        a.set_normalised_from_rgb8(w, h, &base);
+        b.set_normalised_from_rgb8(w, h, &gained);
+        let n = (w * h) as f32;
+        for c in 0..3 {
+            let mean: f32 = a.pixels().iter().map(|p| p[c]).sum::<f32>() / n;
+            assert!(mean.abs() < 1e-4, "channel {c} mean {mean}");
+        }
+        let var: f32 = a.pixels().iter().map(|p| p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sum::<f32>() / (3.0 * n);
+        assert!((var - 1.0).abs() < 1e-3);
+        // Gain and offset vanish up to the rounding of v/2.
+        let diff: f32 = a.pixels().iter().zip(b.pixels()).map(|(p, q)| (p[0] - q[0]).abs()).sum::<f32>() / n;
+        assert!(diff < 0.03, "mean abs difference {diff}");
+    }
+
+    #[test]
+    fn pyramid_levels_halve_and_keep_the_pixel_centre_convention() {
+        // A ramp in x stays a ramp: coarse pixel i sits at fine coordinate 2i + 0.5.
+        let (w, h) = (32, 16);
+        let mut rgb = vec![0u8; w * h * 3];
+        for y in 0..h {
+            for x in 0..w {
+                rgb[(y * w + x) * 3] = (x * 4) as u8;
+                rgb[(y * w + x) * 3 + 1] = (y * 8) as u8;
+            }
+        }
+        let mut pyr = Pyramid::default();
+        pyr.rebuild(w, h, &rgb, 3);
+        assert_eq!(pyr.len(), 3);
+        assert_eq!((pyr.level(1).width(), pyr.level(1).height()), (16, 8));
+        assert_eq!((pyr.level(2).width(), pyr.level(2).height()), (8, 4));
+        let fine = pyr.level(0);
+        let coarse = pyr.level(1);
+        for cx in 1..15 {
+            let expected = fine.sample(2.0 * cx as f32 + 0.5, 6.5).expect("inside")[0];
+            let got = coarse.at(cx, 3)[0];
+            assert!((expected - got).abs() < 1e-4, "x {cx}: {expected} vs {got}");
+        }
+    }
+}

@@ -1,0 +1,22 @@
+//! handflow's scene-flow stage: the Scene Particle engine of "Go With The Flow" (sections
+//! 2.2, 4 and 4.1), as a library with no IPC in it.
+//!
+//! A [`SceneFlowEngine`] is built for a calibrated rig and a reference camera. Frames are
+//! pushed one synchronised set at a time ([`SceneFlowEngine::push_frame`]); each estimate
+//! holds N weighted Scene Particles per ray of the reference camera (3D position on the
+//! ray, 3D velocity) and a dense per-ray field ([`DenseField`]). Two variants share the
+//! particle machinery ([`Variant`]): `paper`, the method as published, and `handflow`, the
+//! default, which adds spatial coupling and robust matching.
+
+pub mod camera;
+pub mod config;
+mod engine;
+pub mod image;
+pub mod likelihood;
+pub mod particles;
+pub mod refine;
+pub mod rng;
+
+pub use config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
+pub use engine::{DenseField, FlowError, FrameStats, SceneFlowEngine};
+pub use particles::Particle;

@@ -1,0 +1,235 @@
+//! How well a Scene Particle explains the images: the paper's colour variance (equations 3
+//! and 6) and handflow's robust windowed matching cost.
+
+use crate::camera::LevelProjection;
+use crate::image::{ColourImage, Rgba};
+
+/// Most images one likelihood looks at (3 frames x 8 cameras).
+pub const MAX_IMAGES: usize = 24;
+/// Most samples in a support window (radius 4).
+pub const MAX_WINDOW: usize = 81;
+
+/// One image the likelihood samples: a camera at a frame, on the current pyramid level.
+#[derive(Clone, Copy)]
+pub struct MatchImage<'a> {
+    /// Frame offset from the estimated frame: -1 (t-1), 0 (t) or +1 (t+1). The point seen
+    /// at frame t+k sits at `r + k v` under the constant-velocity model.
+    pub offset: f32,
+    /// The image.
+    pub image: &'a ColourImage,
+    /// Its camera's projection onto this level.
+    pub projection: &'a LevelProjection,
+    /// True for the reference camera at frame t, whose pixel defines the ray.
+    pub is_reference_now: bool,
+}
+
+/// Equation 3 (with two frames) or 6 (with three): `1 / sqrt(var^2 + eps^2)` where `var` is
+/// the variance of the colours the particle projects to in every image, summed over
+/// channels. Images the point falls outside of do not vote; with fewer than two votes
+/// there is no evidence and the likelihood is that of a maximally inconsistent point.
+#[inline]
+pub fn variance_likelihood(images: &[MatchImage<'_>], position: [f32; 3], velocity: [f32; 3], epsilon: f32) -> f32 {
+    let mut sum = [0f32; 3];
+    let mut sum_sq = 0f32;
+    let mut n = 0u32;
+    for img in images {
+        let p = displaced(position, velocity, img.offset);
+        let Some([u, v]) = img.projection.project(p) else { continue };
+        let Some(c) = img.image.sample(u, v) else { continue };
+        for k in 0..3 {
+            sum[k] += c[k];
+            sum_sq += c[k] * c[k];
+        }
+        n += 1;
+    }
+    // Normalised images have unit variance per channel; 3 channels summed.
+    const NO_EVIDENCE_VARIANCE: f32 = 3.0;
+    let var = if n >= 2 {
+        let inv = 1.0 / n as f32;
+        (sum_sq * inv - (sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]) * inv * inv).max(0.0)
+    } else {
+        NO_EVIDENCE_VARIANCE
+    };
+    1.0 / (var * var + epsilon * epsilon).sqrt()
+}
+
+/// The reference window of a ray: the pixels around it in the reference image at frame t.
+pub struct ReferenceWindow {
+    /// Colours, row-major over the window.
+    pub colours: [Rgba; MAX_WINDOW],
+    /// Window offsets in pixels of the level, same order.
+    pub offsets: [[f32; 2]; MAX_WINDOW],
+    /// Number of samples used.
+    pub len: usize,
+}
+
+impl ReferenceWindow {
+    /// Gathers the `(2r+1)^2` window around pixel `(x, y)` of `image`, clamped at borders.
+    pub fn gather(image: &ColourImage, x: usize, y: usize, radius: usize) -> Self {
+        let mut w = ReferenceWindow { colours: [[0.0; 4]; MAX_WINDOW], offsets: [[0.0; 2]; MAX_WINDOW], len: 0 };
+        let r = radius as isize;
+        let (wmax, hmax) = (image.width() as isize - 1, image.height() as isize - 1);
+        for dy in -r..=r {
+            for dx in -r..=r {
+                let sx = (x as isize + dx).clamp(0, wmax) as usize;
+                let sy = (y as isize + dy).clamp(0, hmax) as usize;
+                w.colours[w.len] = image.at(sx, sy);
+                w.offsets[w.len] = [dx as f32, dy as f32];
+                w.len += 1;
+            }
+        }
+        w
+    }
+}
+
+/// handflow's matching cost of a particle, lower is better: for every image other than the
+/// reference at t, the truncated L1 colour difference between the reference window and the
+/// window around the particle's projection (the window translated, not warped: at the
+/// scale of a few pixels the local warp between views is close to a translation), averaged
+/// over samples and channels. Only the best `keep` images are averaged, so views that do not
+/// see the point (occlusion, outside the image) do not spoil it; missing images count as
+/// fully mismatched.
+#[inline]
+pub fn robust_window_cost(
+    images: &[MatchImage<'_>],
+    reference: &ReferenceWindow,
+    position: [f32; 3],
+    velocity: [f32; 3],
+    truncation: f32,
+    keep: usize,
+) -> f32 {
+    let mut costs = [truncation; MAX_IMAGES];
+    let mut n = 0usize;
+    let norm = 1.0 / (reference.len as f32 * 3.0);
+    for img in images {
+        if img.is_reference_now {
+            continue;
+        }
+        let p = displaced(position, velocity, img.offset);
+        let Some([u, v]) = img.projection.project(p) else {
+            n += 1;
+            continue;
+        };
+        costs[n] = window_cost(img.image, reference, u, v, truncation) * norm;
+        n += 1;
+    }
+    let keep = keep.clamp(1, n.max(1));
+    let costs = &mut costs[..n.max(1)];
+    // Partial selection of the `keep` smallest costs; n is at most 24.
+    costs.select_nth_unstable_by(keep - 1, f32::total_cmp);
+    costs[..keep].iter().sum::<f32>() / keep as f32
+}
+
+/// Sum over the window and channels of `min(|ref - sample|, truncation)`; a window whose
+/// centre falls outside the image costs the maximum.
+#[inline(always)]
+fn window_cost(image: &ColourImage, reference: &ReferenceWindow, u: f32, v: f32, truncation: f32) -> f32 {
+    let wmax = (image.width() - 1) as f32;
+    let hmax = (image.height() - 1) as f32;
+    if !(u >= 0.0 && v >= 0.0 && u <= wmax && v <= hmax) {
+        return truncation * 3.0 * reference.len as f32;
+    }
+    let mut sum = 0.0f32;
+    for s in 0..reference.len {
+        let [dx, dy] = reference.offsets[s];
+        let x = (u + dx).clamp(0.0, wmax);
+        let y = (v + dy).clamp(0.0, hmax);
+        // Inside by construction, so `sample` never refuses; a refusal would be a bug.
+        let c = image.sample(x, y).unwrap_or([f32::INFINITY; 4]);
+        let r = reference.colours[s];
+        for k in 0..3 {
+            sum += (c[k] - r[k]).abs().min(truncation);
+        }
+    }
+    sum
+}
+
+/// The world point of a particle at frame offset `k`: `r + k v`.
+#[inline(always)]
+pub fn displaced(position: [f32; 3], velocity: [f32; 3], offset: f32) -> [f32; 3] {
+    [
+        position[0] + offset * velocity[0],
+        position[1] + offset * velocity[1],
+        position[2] + offset * velocity[2],
+    ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use handflow_protocol::{Camera, Distortion};
+    use nalgebra::{Matrix3, Rotation3, Vector3};
+
+    fn camera_at(x: f64) -> LevelProjection {
+        let cam = Camera::new(
+            "c",
+            4,
+            4,
+            Matrix3::new(2.0, 0.0, 1.5, 0.0, 2.0, 1.5, 0.0, 0.0, 1.0),
+            Distortion::default(),
+            Rotation3::identity(),
+            Vector3::new(-x, 0.0, 0.0),
+        )
+        .expect("valid");
+        LevelProjection::new(&cam, 0)
+    }
+
+    fn uniform_image(value: [f32; 3]) -> ColourImage {
+        let mut img = ColourImage::new(4, 4);
+        for p in img.pixels_mut() {
+            *p = [value[0], value[1], value[2], 0.0];
+        }
+        img
+    }
+
+    #[test]
+    fn variance_likelihood_equals_the_hand_computed_value() {
+        // Three flat images of colours a, b, c: every projection sees its image's colour.
+        let a = uniform_image([0.0, 0.0, 0.0]);
+        let b = uniform_image([1.0, 0.0, 0.0]);
+        let c = uniform_image([2.0, 1.0, 0.0]);
+        let (pa, pb, pc) = (camera_at(0.0), camera_at(0.1), camera_at(-0.1));
+        let images = [
+            MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true },
+            MatchImage { offset: -1.0, image: &b, projection: &pb, is_reference_now: false },
+            MatchImage { offset: 0.0, image: &c, projection: &pc, is_reference_now: false },
+        ];
+        // Mean (1, 1/3, 0); squared deviations: (1 + 1/9) + (0 + 1/9) + (1 + 4/9) = 8/3;
+        // variance = 8/9. Likelihood = 1 / sqrt((8/9)^2 + 0.001^2).
+        let expected = 1.0 / ((8.0f32 / 9.0).powi(2) + 1e-6).sqrt();
+        let got = variance_likelihood(&images, [0.0, 0.0, 2.0], [0.0; 3], 0.001);
+        assert!((got - expected).abs() < 1e-4, "{got} vs {expected}");
+        // Identical colours: the likelihood is 1/epsilon.
+        let same = [images[0], MatchImage { image: &a, ..images[1] }];
+        let got = variance_likelihood(&same, [0.0, 0.0, 2.0], [0.0; 3], 0.001);
+        assert!((got - 1000.0).abs() < 1e-2);
+    }
+
+    #[test]
+    fn points_outside_every_other_view_get_no_evidence() {
+        let a = uniform_image([0.0, 0.0, 0.0]);
+        let pa = camera_at(0.0);
+        let images = [MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true }];
+        let got = variance_likelihood(&images, [0.0, 0.0, 2.0], [0.0; 3], 0.001);
+        assert!((got - 1.0 / 3.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn robust_cost_ignores_the_worst_views() {
+        let good = uniform_image([0.5, 0.5, 0.5]);
+        let bad = uniform_image([-2.0, 2.0, -2.0]);
+        let p = camera_at(0.0);
+        let reference = ReferenceWindow::gather(&good, 1, 1, 1);
+        let images = [
+            MatchImage { offset: 0.0, image: &good, projection: &p, is_reference_now: true },
+            MatchImage { offset: -1.0, image: &good, projection: &p, is_reference_now: false },
+            MatchImage { offset: 0.0, image: &good, projection: &p, is_reference_now: false },
+            MatchImage { offset: 0.0, image: &bad, projection: &p, is_reference_now: false },
+        ];
+        let pos = [0.0, 0.0, 2.0];
+        assert_eq!(robust_window_cost(&images, &reference, pos, [0.0; 3], 1.0, 2), 0.0);
+        // Keeping all three: the bad view costs the truncation on every channel.
+        let all = robust_window_cost(&images, &reference, pos, [0.0; 3], 1.0, 3);
+        assert!((all - 1.0 / 3.0).abs() < 1e-6, "{all}");
+    }
+}
