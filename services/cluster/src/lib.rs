@@ -41,12 +41,15 @@ pub struct Moments {
 /// Weighted moments of `points`; `None` when there is no positive, finite weight.
 /// Non-finite points and negative weights are skipped (they carry no evidence).
 pub fn weighted_moments(points: &[WeightedPoint], velocity_scale: f64) -> Option<Moments> {
-    let usable = |p: &&WeightedPoint| p.weight > 0.0 && p.weight.is_finite() && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite());
+    let usable = |p: &&WeightedPoint| {
+        p.weight > 0.0 && p.weight.is_finite() && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
+    };
     let total: f64 = points.iter().filter(usable).map(|p| p.weight).sum();
     if !(total > 0.0) {
         return None;
     }
-    let mean = points.iter().filter(usable).fold(Vector6::zeros(), |acc, p| acc + p.feature(velocity_scale) * p.weight) / total;
+    let mean = points.iter().filter(usable).fold(Vector6::zeros(), |acc, p| acc + p.feature(velocity_scale) * p.weight)
+        / total;
     let covariance = points.iter().filter(usable).fold(Matrix6::zeros(), |acc, p| {
         let d = p.feature(velocity_scale) - mean;
         acc + d * d.transpose() * p.weight

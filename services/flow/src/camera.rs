@@ -95,10 +95,7 @@ mod tests {
     #[test]
     fn level_zero_matches_the_double_precision_camera() {
         let _ = Rig::default();
-        for d in [
-            Distortion::default(),
-            Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.002, k3: 0.0 },
-        ] {
+        for d in [Distortion::default(), Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.002, k3: 0.0 }] {
             let cam = camera(d);
             let fast = LevelProjection::new(&cam, 0);
             for p in [[0.1, 0.2, 1.0], [-0.3, 0.1, 0.5], [0.0, 0.0, 3.0]] {

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use crate::camera::LevelProjection;
 use crate::config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
-use crate::image::Pyramid;
+use crate::image::{LocalNormalisation, Pyramid};
 use crate::likelihood::{robust_window_cost, variance_likelihood, MatchImage, ReferenceWindow, MAX_IMAGES};
 use crate::particles::{ray_resample, Particle, SearchSpace};
 use crate::refine::{weighted_median_refine, RayEstimate};
@@ -104,6 +104,7 @@ pub struct SceneFlowEngine {
     /// Ray grids per level (`paper` uses only level 0's: its rays are full-resolution pixels).
     grids: Vec<RayGrid>,
     origin: [f32; 3],
+    optical_axis: [f32; 3],
     space: SearchSpace,
     /// Three frame slots of per-camera pyramids; `ring_newest` is the last pushed.
     ring: [Vec<Pyramid>; 3],
@@ -142,10 +143,17 @@ impl SceneFlowEngine {
             return Err(FlowError::Rig("the rig has no camera".into()));
         }
         if cameras.len() * 3 > MAX_IMAGES {
-            return Err(FlowError::Rig(format!("at most {} cameras are supported, got {}", MAX_IMAGES / 3, cameras.len())));
+            return Err(FlowError::Rig(format!(
+                "at most {} cameras are supported, got {}",
+                MAX_IMAGES / 3,
+                cameras.len()
+            )));
         }
         let Some(ref_cam) = cameras.get(reference) else {
-            return Err(FlowError::Rig(format!("reference camera {reference} does not exist ({} cameras)", cameras.len())));
+            return Err(FlowError::Rig(format!(
+                "reference camera {reference} does not exist ({} cameras)",
+                cameras.len()
+            )));
         };
         let (width, height) = (ref_cam.width as usize, ref_cam.height as usize);
         let levels = config.pyramid_levels;
@@ -154,6 +162,8 @@ impl SceneFlowEngine {
         let grids: Vec<RayGrid> = (0..grid_levels).map(|l| ray_grid(ref_cam, l)).collect();
         let centre = ref_cam.centre();
         let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
+        let axis = ref_cam.rotation.matrix().row(2).transpose();
+        let optical_axis = [axis.x as f32, axis.y as f32, axis.z as f32];
         let baseline = cameras.iter().map(|c| (c.centre() - centre).norm()).fold(0.0f64, f64::max);
         let focal = ref_cam.matrix[(0, 0)] as f32;
         // A single camera (or co-located ones) still has temporal parallax; use a nominal
@@ -174,6 +184,7 @@ impl SceneFlowEngine {
             projections,
             grids,
             origin,
+            optical_axis,
             space,
             ring: Default::default(),
             ring_len: 0,
@@ -268,10 +279,16 @@ impl SceneFlowEngine {
         }
         let slot = (self.ring_newest + 1) % 3;
         let levels = self.config.pyramid_levels;
+        let local = (self.config.variant == Variant::Handflow && self.config.local_normalisation_radius > 0).then_some(
+            LocalNormalisation {
+                radius: self.config.local_normalisation_radius,
+                floor: self.config.local_normalisation_floor,
+            },
+        );
         let pyramids = &mut self.ring[slot];
         pyramids.resize_with(self.cameras.len(), Pyramid::default);
         pyramids.par_iter_mut().zip(self.cameras.par_iter()).zip(views.par_iter()).for_each(|((pyr, cam), view)| {
-            pyr.rebuild(cam.width as usize, cam.height as usize, view, levels);
+            pyr.rebuild(cam.width as usize, cam.height as usize, view, levels, local);
         });
         self.ring_newest = slot;
         self.ring_len = (self.ring_len + 1).min(3);
@@ -365,8 +382,6 @@ impl SceneFlowEngine {
         let (w, h) = (grid.width, grid.height);
         let reference = &self.projections[0][self.reference];
         self.counts_back.iter_mut().for_each(|c| *c = 0);
-        let mut seen = vec![0u32; 0];
-        seen.clear();
         let mut rng = RayRng::for_item(self.config.seed, frame, 1 << 20, 0);
         for ray in 0..w * h {
             let count = usize::from(self.counts[ray]);
@@ -401,39 +416,37 @@ impl SceneFlowEngine {
         let dense = self.config.coverage == Coverage::Dense;
         let (seed, space) = (self.config.seed, self.space);
         let (back, counts_back) = (&self.particles_back, &self.counts_back);
-        self.particles
-            .par_chunks_mut(n)
-            .zip(self.counts.par_iter_mut())
-            .enumerate()
-            .for_each(|(ray, (out, count))| {
-                let mut rng = RayRng::for_item(seed, frame, 1 << 21, ray as u64);
-                let mut have = usize::from(counts_back[ray]);
-                out[..have].copy_from_slice(&back[ray * n..ray * n + have]);
-                if have == 0 && dense {
-                    have = refill_from_neighbours(back, counts_back, n, w, h, ray, out, &mut rng);
-                }
-                if have == 0 {
-                    *count = 0;
-                    return;
-                }
-                // Duplicate to a full ray, then refresh a share for exploration.
-                for k in have..n {
-                    out[k] = out[(rng.uniform() * have as f32) as usize % have];
-                }
-                for slot in out.iter_mut().skip(n - fresh.min(n - 1)) {
-                    *slot = space.random_particle(&mut rng);
-                }
-                for slot in out.iter_mut() {
-                    slot.weight = 1.0 / n as f32;
-                }
-                *count = n as u8;
-            });
+        self.particles.par_chunks_mut(n).zip(self.counts.par_iter_mut()).enumerate().for_each(|(ray, (out, count))| {
+            let mut rng = RayRng::for_item(seed, frame, 1 << 21, ray as u64);
+            let mut have = usize::from(counts_back[ray]);
+            out[..have].copy_from_slice(&back[ray * n..ray * n + have]);
+            if have == 0 && dense {
+                have = refill_from_neighbours(back, counts_back, n, w, h, ray, out, &mut rng);
+            }
+            if have == 0 {
+                *count = 0;
+                return;
+            }
+            // Duplicate to a full ray, then refresh a share for exploration.
+            for k in have..n {
+                out[k] = out[(rng.uniform() * have as f32) as usize % have];
+            }
+            for slot in out.iter_mut().skip(n - fresh.min(n - 1)) {
+                *slot = space.random_particle(&mut rng);
+            }
+            for slot in out.iter_mut() {
+                slot.weight = 1.0 / n as f32;
+            }
+            *count = n as u8;
+        });
     }
 
     /// Initial particles on the coarsest grid: from the carried prior (sampled down from
     /// full resolution) or, without a prior, from the broad initial prior.
     fn seed_top_level(&mut self, grid_level: usize, use_prior: bool, frame: u64) {
         let n = self.config.particles_per_ray;
+        // Neighbour bests from an earlier frame or level must not leak into this one.
+        self.best.iter_mut().for_each(|b| *b = Particle::EMPTY);
         if use_prior && grid_level == 0 {
             return; // `particles` already holds the prior at full resolution.
         }
@@ -461,7 +474,6 @@ impl SceneFlowEngine {
                 });
             return;
         }
-        let sparse_empty = false;
         self.particles[..gw * gh * n]
             .par_chunks_mut(n)
             .zip(self.counts[..gw * gh].par_iter_mut())
@@ -472,7 +484,7 @@ impl SceneFlowEngine {
                     *slot = space.random_particle(&mut rng);
                     slot.weight = 1.0 / n as f32;
                 }
-                *count = if sparse_empty { 0 } else { n as u8 };
+                *count = n as u8;
             });
     }
 
@@ -504,30 +516,47 @@ impl SceneFlowEngine {
     /// One noise loop on one level: diffuse, evaluate, weight, resample, for every ray in
     /// parallel. Returns the number of likelihood evaluations.
     #[allow(clippy::too_many_arguments)]
-    fn iterate(&mut self, window: Window, level: usize, grid_level: usize, sigma_level_px: f32, last: bool, frame: u64, stage: u64) -> u64 {
+    fn iterate(
+        &mut self,
+        window: Window,
+        level: usize,
+        grid_level: usize,
+        sigma_level_px: f32,
+        last: bool,
+        frame: u64,
+        stage: u64,
+    ) -> u64 {
         let n = self.config.particles_per_ray;
         let grid = &self.grids[grid_level];
         let (gw, gh) = (grid.width, grid.height);
-        let mut images_buf: [Option<MatchImage<'_>>; MAX_IMAGES] = [None; MAX_IMAGES];
+        // A fixed array, not a Vec: nothing is allocated per iteration.
+        let first_slot = window.slots[0];
+        let placeholder = MatchImage {
+            offset: 0.0,
+            image: self.ring[first_slot][0].matching_level(level),
+            projection: &self.projections[level][0],
+            is_reference_now: false,
+        };
+        let mut images = [placeholder; MAX_IMAGES];
         let mut n_images = 0;
         for (k, &slot) in window.slots.iter().enumerate().take(window.len) {
             let offset = k as f32 - 1.0;
             for (q, pyr) in self.ring[slot].iter().enumerate() {
-                images_buf[n_images] = Some(MatchImage {
+                images[n_images] = MatchImage {
                     offset,
-                    image: pyr.level(level),
+                    image: pyr.matching_level(level),
                     projection: &self.projections[level][q],
                     is_reference_now: k == 1 && q == self.reference,
-                });
+                };
                 n_images += 1;
             }
         }
-        let images: Vec<MatchImage<'_>> = images_buf[..n_images].iter().flatten().copied().collect();
+        let images = &images[..n_images];
         let ctx = IterationContext {
             config: &self.config,
             space: self.space,
-            images: &images,
-            reference_image: self.ring[window.slots[1]][self.reference].level(level),
+            images,
+            reference_image: self.ring[window.slots[1]][self.reference].matching_level(level),
             dirs: &grid.dirs,
             origin: self.origin,
             grid_width: gw,
@@ -536,20 +565,81 @@ impl SceneFlowEngine {
             per_level_grid: self.config.variant == Variant::Handflow,
             sigma_px: sigma_level_px * (1u32 << level) as f32,
             keep: ((n_images - 1) as f32 * self.config.view_keep_fraction).ceil().max(1.0) as usize,
+            optical_axis: self.optical_axis,
             best_prev: &self.best,
             top_level: level + 1 == self.config.pyramid_levels,
             last,
             frame,
             stage,
         };
-        self.particles[..gw * gh * n]
-            .par_chunks_mut(n)
-            .zip(self.counts[..gw * gh].par_iter_mut())
-            .zip(self.best_back[..gw * gh].par_iter_mut())
-            .zip(self.estimates[..gw * gh].par_iter_mut())
-            .enumerate()
-            .map(|(ray, (((particles, count), best), estimate))| ctx.update_ray(ray, particles, count, best, estimate))
-            .sum()
+        let rays = gw * gh;
+        let (particles, counts) = (&mut self.particles[..rays * n], &mut self.counts[..rays]);
+        let (best_out, estimates) = (&mut self.best_back[..rays], &mut self.estimates[..rays]);
+        let sweep = if ctx.config.variant == Variant::Handflow && ctx.config.propagation {
+            Sweep::for_stage(stage)
+        } else {
+            Sweep::None
+        };
+        match sweep {
+            // Jacobi: every ray reads its neighbours' previous best; fully parallel.
+            Sweep::None => particles
+                .par_chunks_mut(n)
+                .zip(counts.par_iter_mut())
+                .zip(best_out.par_iter_mut())
+                .zip(estimates.par_iter_mut())
+                .enumerate()
+                .map(|(ray, (((p, c), b), e))| ctx.update_ray(ray, p, c, None, b, e))
+                .sum(),
+            // PatchMatch-style sweep along rows, rows in parallel: a good hypothesis can
+            // cross the whole row in one iteration instead of one ray per iteration.
+            Sweep::Rows { reverse } => particles
+                .par_chunks_mut(gw * n)
+                .zip(counts.par_chunks_mut(gw))
+                .zip(best_out.par_chunks_mut(gw))
+                .zip(estimates.par_chunks_mut(gw))
+                .enumerate()
+                .map(|(y, (((prow, crow), brow), erow))| {
+                    let mut evals = 0;
+                    for k in 0..gw {
+                        let x = if reverse { gw - 1 - k } else { k };
+                        let scan = match (reverse, x) {
+                            (false, 0) => None,
+                            (false, _) => Some(brow[x - 1]),
+                            (true, _) if x + 1 == gw => None,
+                            (true, _) => Some(brow[x + 1]),
+                        };
+                        let (p, c) = (&mut prow[x * n..(x + 1) * n], &mut crow[x]);
+                        evals += ctx.update_ray(y * gw + x, p, c, scan, &mut brow[x], &mut erow[x]);
+                    }
+                    evals
+                })
+                .sum(),
+            // The same along columns: rows one after another, each row in parallel, reading
+            // the row just updated.
+            Sweep::Columns { reverse } => {
+                let mut evals = 0;
+                for k in 0..gh {
+                    let y = if reverse { gh - 1 - k } else { k };
+                    let row = y * gw..(y + 1) * gw;
+                    let (before, rest) = best_out.split_at_mut(row.start);
+                    let (this_row, after) = rest.split_at_mut(gw);
+                    let previous: Option<&[Particle]> = match reverse {
+                        false if y > 0 => Some(&before[(y - 1) * gw..]),
+                        true if y + 1 < gh => Some(&after[..gw]),
+                        _ => None,
+                    };
+                    evals += particles[row.start * n..row.end * n]
+                        .par_chunks_mut(n)
+                        .zip(counts[row.clone()].par_iter_mut())
+                        .zip(this_row.par_iter_mut())
+                        .zip(estimates[row.clone()].par_iter_mut())
+                        .enumerate()
+                        .map(|(x, (((p, c), b), e))| ctx.update_ray(y * gw + x, p, c, previous.map(|r| r[x]), b, e))
+                        .sum::<u64>();
+                }
+                evals
+            }
+        }
     }
 
     /// Turns the per-ray estimates (refined for `handflow`) into the dense field.
@@ -557,7 +647,13 @@ impl SceneFlowEngine {
         let refine = self.config.variant == Variant::Handflow && self.config.refine_radius > 0;
         let source = if refine {
             let guide = self.ring[window.slots[1]][self.reference].level(0);
-            weighted_median_refine(&self.estimates, &mut self.refined, guide, self.config.refine_radius, self.config.refine_colour_sigma);
+            weighted_median_refine(
+                &self.estimates,
+                &mut self.refined,
+                guide,
+                self.config.refine_radius,
+                self.config.refine_colour_sigma,
+            );
             &self.refined
         } else {
             &self.estimates
@@ -589,6 +685,29 @@ impl SceneFlowEngine {
     }
 }
 
+/// Order in which rays are updated within one noise loop.
+#[derive(Clone, Copy, Debug)]
+enum Sweep {
+    /// All rays at once from the previous iteration's neighbours.
+    None,
+    /// Along rows; right to left when `reverse`.
+    Rows { reverse: bool },
+    /// Along columns; bottom to top when `reverse`.
+    Columns { reverse: bool },
+}
+
+impl Sweep {
+    /// Cycles through the four directions so that information flows every way.
+    fn for_stage(stage: u64) -> Self {
+        match stage % 4 {
+            0 => Sweep::Rows { reverse: false },
+            1 => Sweep::Columns { reverse: false },
+            2 => Sweep::Rows { reverse: true },
+            _ => Sweep::Columns { reverse: true },
+        }
+    }
+}
+
 /// Read-only state of one noise loop, shared by all rays.
 struct IterationContext<'a> {
     config: &'a EngineConfig,
@@ -604,6 +723,8 @@ struct IterationContext<'a> {
     /// Diffusion in full-resolution pixels.
     sigma_px: f32,
     keep: usize,
+    /// The reference camera's optical axis in the world: the direction of motion in depth.
+    optical_axis: [f32; 3],
     best_prev: &'a [Particle],
     top_level: bool,
     last: bool,
@@ -615,7 +736,15 @@ struct IterationContext<'a> {
 const MAX_CANDIDATES: usize = MAX_PARTICLES_PER_RAY + 8;
 
 impl IterationContext<'_> {
-    fn update_ray(&self, ray: usize, particles: &mut [Particle], count: &mut u8, best: &mut Particle, estimate: &mut RayEstimate) -> u64 {
+    fn update_ray(
+        &self,
+        ray: usize,
+        particles: &mut [Particle],
+        count: &mut u8,
+        scan: Option<Particle>,
+        best: &mut Particle,
+        estimate: &mut RayEstimate,
+    ) -> u64 {
         let have = usize::from(*count);
         if have == 0 {
             *best = Particle::EMPTY;
@@ -627,13 +756,20 @@ impl IterationContext<'_> {
         let mut rng = RayRng::for_item(self.config.seed, self.frame, self.stage, ray as u64);
         match self.config.variant {
             Variant::Paper => self.update_ray_paper(ray, &mut particles[..have], best, estimate, &mut rng),
-            Variant::Handflow => self.update_ray_handflow(ray, particles, count, best, estimate, &mut rng),
+            Variant::Handflow => self.update_ray_handflow(ray, particles, count, scan, best, estimate, &mut rng),
         }
     }
 
     /// The paper: diffuse every particle, weight by equation 5 (the average of the
     /// normalised likelihood and the previous weight), resample the ray.
-    fn update_ray_paper(&self, ray: usize, particles: &mut [Particle], best: &mut Particle, estimate: &mut RayEstimate, rng: &mut RayRng) -> u64 {
+    fn update_ray_paper(
+        &self,
+        ray: usize,
+        particles: &mut [Particle],
+        best: &mut Particle,
+        estimate: &mut RayEstimate,
+        rng: &mut RayRng,
+    ) -> u64 {
         let dir = self.dirs[ray];
         let mut cands = [Particle::EMPTY; MAX_PARTICLES_PER_RAY];
         let mut likelihood = [0f32; MAX_PARTICLES_PER_RAY];
@@ -659,7 +795,12 @@ impl IterationContext<'_> {
         }
         *best = cands[best_k];
         if self.last {
-            *estimate = weighted_mean(&cands[..n], &weights[..n], None, 1.0 / cands[best_k].cost.max(1e-12) / (1.0 / self.config.epsilon));
+            *estimate = weighted_mean(
+                &cands[..n],
+                &weights[..n],
+                None,
+                1.0 / cands[best_k].cost.max(1e-12) / (1.0 / self.config.epsilon),
+            );
         }
         if !ray_resample(&cands[..n], &weights[..n], particles, rng) {
             particles.copy_from_slice(&cands[..n]);
@@ -676,6 +817,7 @@ impl IterationContext<'_> {
         ray: usize,
         particles: &mut [Particle],
         count: &mut u8,
+        scan: Option<Particle>,
         best: &mut Particle,
         estimate: &mut RayEstimate,
         rng: &mut RayRng,
@@ -685,15 +827,21 @@ impl IterationContext<'_> {
         let dir = self.dirs[ray];
         let (x, y) = (ray % self.grid_width, ray / self.grid_width);
         let reference = if self.per_level_grid {
-            ReferenceWindow::gather(self.reference_image, x, y, self.config.window_radius)
+            ReferenceWindow::gather(self.reference_image, x, y, self.config.window_radius, self.config.window_step)
         } else {
-            ReferenceWindow::gather(self.reference_image, x >> self.level, y >> self.level, self.config.window_radius)
+            ReferenceWindow::gather(
+                self.reference_image,
+                x >> self.level,
+                y >> self.level,
+                self.config.window_radius,
+                self.config.window_step,
+            )
         };
         let mut cands = [Particle::EMPTY; MAX_CANDIDATES];
         let mut m = 0;
         // The previous best survives undiffused (elitism): a ray never loses its best
         // hypothesis to a random step.
-        let elite = if best.is_valid() { *best } else { particles[0] };
+        let elite = if self.best_prev[ray].is_valid() { self.best_prev[ray] } else { particles[0] };
         cands[m] = elite;
         m += 1;
         for p in particles.iter().take(have).skip(1) {
@@ -704,6 +852,9 @@ impl IterationContext<'_> {
             cands[m] = self.space.diffuse(&particles[0], self.sigma_px, rng);
             m += 1;
         }
+        // Neighbour bests: candidates for propagation and, through their per-component
+        // median, the consensus velocity of the smoothness term.
+        let mut consensus: Option<[f32; 3]> = None;
         if self.config.propagation {
             let (w, h) = (self.grid_width, self.grid_height);
             let neighbours = [
@@ -712,12 +863,29 @@ impl IterationContext<'_> {
                 (y > 0).then(|| ray - w),
                 (y + 1 < h).then(|| ray + w),
             ];
-            for nb in neighbours.into_iter().flatten() {
-                let b = self.best_prev[nb];
+            let previous = neighbours.into_iter().flatten().map(|nb| self.best_prev[nb]);
+            let first = m;
+            for b in previous.chain(scan) {
                 if b.is_valid() {
                     cands[m] = b;
                     m += 1;
                 }
+            }
+            if m - first >= 2 && self.config.smoothness_px > 0.0 && self.level == 0 {
+                consensus = Some(std::array::from_fn(|k| {
+                    let mut vals = [0f32; 5];
+                    let count = m - first;
+                    for (slot, c) in vals.iter_mut().zip(&cands[first..m]) {
+                        *slot = c.velocity[k];
+                    }
+                    let vals = &mut vals[..count];
+                    vals.sort_unstable_by(f32::total_cmp);
+                    if count % 2 == 1 {
+                        vals[count / 2]
+                    } else {
+                        0.5 * (vals[count / 2 - 1] + vals[count / 2])
+                    }
+                }));
             }
         }
         if self.top_level {
@@ -728,6 +896,8 @@ impl IterationContext<'_> {
         }
         let mut log_w = [0f32; MAX_CANDIDATES];
         let prior_scale = 1.0 / (2.0 * (self.config.velocity_prior * self.config.speed_bound).powi(2));
+        let prior_scale_depth = 1.0 / (2.0 * (self.config.velocity_prior_depth * self.config.speed_bound).powi(2));
+        let sight = self.optical_axis;
         let inv_t = 1.0 / self.config.temperature;
         let mut best_k = 0;
         for k in 0..m {
@@ -735,7 +905,16 @@ impl IterationContext<'_> {
             let pos = point_on_ray(self.origin, dir, p.depth);
             p.cost = robust_window_cost(self.images, &reference, pos, p.velocity, self.config.truncation, self.keep);
             let v = p.velocity;
-            log_w[k] = -p.cost * inv_t - (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * prior_scale;
+            let along = v[0] * sight[0] + v[1] * sight[1] + v[2] * sight[2];
+            let across_sq = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2] - along * along).max(0.0);
+            log_w[k] = -p.cost * inv_t - across_sq * prior_scale - along * along * prior_scale_depth;
+            if let Some(c) = consensus {
+                // Truncated quadratic: smooth within a surface, free across a motion edge.
+                let sigma = self.config.smoothness_px * p.depth / self.space.focal_px;
+                let d = [v[0] - c[0], v[1] - c[1], v[2] - c[2]];
+                let e = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) / (2.0 * sigma * sigma);
+                log_w[k] -= e.min(self.config.smoothness_cap);
+            }
             if log_w[k] > log_w[best_k] {
                 best_k = k;
             }
@@ -747,7 +926,11 @@ impl IterationContext<'_> {
         *best = cands[best_k];
         if self.last {
             let confidence = (-cands[best_k].cost * inv_t * 0.5).exp();
-            *estimate = weighted_mean(&cands[..m], &weights[..m], Some(&cands[best_k]), confidence.max(1e-6));
+            *estimate = if self.config.mean_estimate {
+                weighted_mean(&cands[..m], &weights[..m], Some(&cands[best_k]), confidence.max(1e-6))
+            } else {
+                weighted_mean(&cands[best_k..=best_k], &[1.0], None, confidence.max(1e-6))
+            };
         }
         particles[0] = cands[best_k];
         particles[0].weight = 1.0 / n as f32;
@@ -774,7 +957,9 @@ fn weighted_mean(particles: &[Particle], weights: &[f32], mode: Option<&Particle
     for (p, &w) in particles.iter().zip(weights) {
         if let Some(m) = mode {
             let rel_depth = (p.depth - m.depth).abs() / m.depth;
-            let dv = (p.velocity[0] - m.velocity[0]).abs() + (p.velocity[1] - m.velocity[1]).abs() + (p.velocity[2] - m.velocity[2]).abs();
+            let dv = (p.velocity[0] - m.velocity[0]).abs()
+                + (p.velocity[1] - m.velocity[1]).abs()
+                + (p.velocity[2] - m.velocity[2]).abs();
             // ~1% of depth is about a pixel of disparity at the far end of typical rigs;
             // velocities compare at the same relative scale.
             if rel_depth > 0.02 || dv > 0.02 * m.depth.max(1e-3) {
@@ -800,7 +985,16 @@ fn weighted_mean(particles: &[Particle], weights: &[f32], mode: Option<&Particle
 /// Dense mode: an empty ray copies the particles of a random non-empty ray within a few
 /// pixels. Returns how many particles were copied.
 #[allow(clippy::too_many_arguments)]
-fn refill_from_neighbours(src: &[Particle], counts: &[u8], n: usize, w: usize, h: usize, ray: usize, out: &mut [Particle], rng: &mut RayRng) -> usize {
+fn refill_from_neighbours(
+    src: &[Particle],
+    counts: &[u8],
+    n: usize,
+    w: usize,
+    h: usize,
+    ray: usize,
+    out: &mut [Particle],
+    rng: &mut RayRng,
+) -> usize {
     let (x, y) = ((ray % w) as isize, (ray / w) as isize);
     for radius in 1..=4isize {
         for _ in 0..8 {

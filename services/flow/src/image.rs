@@ -20,11 +20,7 @@ pub struct ColourImage {
 impl ColourImage {
     /// A black image; the buffer is reused by [`ColourImage::resize`] and the normalisers.
     pub fn new(width: usize, height: usize) -> Self {
-        Self {
-            width,
-            height,
-            pixels: vec![[0.0; 4]; width * height],
-        }
+        Self { width, height, pixels: vec![[0.0; 4]; width * height] }
     }
 
     /// Width in pixels.
@@ -164,15 +160,38 @@ impl ColourImage {
 }
 
 /// A coarse-to-fine stack: level 0 is full resolution, each further level half the size.
+///
+/// Besides the normalised colour levels, a pyramid can hold *matching* levels: each level
+/// locally contrast-normalised (see [`ColourImage::local_normalise_into`]), which makes weak
+/// texture as discriminative as strong texture.
 #[derive(Clone, Debug, Default)]
 pub struct Pyramid {
     levels: Vec<ColourImage>,
+    matching: Vec<ColourImage>,
     scratch: Vec<Rgba>,
 }
 
+/// Parameters of local contrast normalisation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LocalNormalisation {
+    /// Half-size of the square neighbourhood, pixels.
+    pub radius: usize,
+    /// Standard deviation added in quadrature to the local one (normalised units), so flat
+    /// regions are not amplified into noise.
+    pub floor: f32,
+}
+
 impl Pyramid {
-    /// Rebuilds the pyramid from RGB8 in place (buffers are reused across frames).
-    pub fn rebuild(&mut self, width: usize, height: usize, rgb: &[u8], levels: usize) {
+    /// Rebuilds the pyramid from RGB8 in place (buffers are reused across frames), with
+    /// matching levels when `local` is given.
+    pub fn rebuild(
+        &mut self,
+        width: usize,
+        height: usize,
+        rgb: &[u8],
+        levels: usize,
+        local: Option<LocalNormalisation>,
+    ) {
         let levels = levels.max(1);
         self.levels.resize_with(levels, ColourImage::default);
         self.levels[0].set_normalised_from_rgb8(width, height, rgb);
@@ -180,11 +199,26 @@ impl Pyramid {
             let (finer, coarser) = self.levels.split_at_mut(l);
             finer[l - 1].downsample_into(&mut coarser[0], &mut self.scratch);
         }
+        match local {
+            Some(params) => {
+                self.matching.resize_with(levels, ColourImage::default);
+                for (src, dst) in self.levels.iter().zip(self.matching.iter_mut()) {
+                    src.local_normalise_into(dst, params, &mut self.scratch);
+                }
+            }
+            None => self.matching.clear(),
+        }
     }
 
     /// Level `l` (0 = full resolution).
     pub fn level(&self, l: usize) -> &ColourImage {
         &self.levels[l]
+    }
+
+    /// The image to match on at level `l`: the locally normalised one when built, else the
+    /// normalised colour level.
+    pub fn matching_level(&self, l: usize) -> &ColourImage {
+        self.matching.get(l).unwrap_or(&self.levels[l])
     }
 
     /// Number of levels.
@@ -196,6 +230,61 @@ impl Pyramid {
     pub fn is_empty(&self) -> bool {
         self.levels.is_empty()
     }
+}
+
+impl ColourImage {
+    /// Writes into `dst` this image with every pixel's neighbourhood mean removed (per
+    /// channel) and divided by the neighbourhood's standard deviation (over all channels,
+    /// plus `floor` in quadrature): the per-pixel form of normalised cross-correlation.
+    pub fn local_normalise_into(&self, dst: &mut ColourImage, params: LocalNormalisation, scratch: &mut Vec<Rgba>) {
+        let (w, h) = (self.width, self.height);
+        dst.resize(w, h);
+        // Box sums of value and squared value (pad lane holds the squared sum), separable.
+        scratch.clear();
+        scratch.resize(w * h, [0.0; 4]);
+        let r = params.radius as isize;
+        let clamp = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
+        for y in 0..h {
+            let row = &self.pixels[y * w..(y + 1) * w];
+            let mut acc = [0.0f32; 4];
+            for dx in -r..=r {
+                add_with_square(&mut acc, row[clamp(dx, w)], 1.0);
+            }
+            for x in 0..w {
+                scratch[y * w + x] = acc;
+                add_with_square(&mut acc, row[clamp(x as isize - r, w)], -1.0);
+                add_with_square(&mut acc, row[clamp(x as isize + r + 1, w)], 1.0);
+            }
+        }
+        let area = ((2 * r + 1) * (2 * r + 1)) as f32;
+        let floor_sq = params.floor * params.floor;
+        for x in 0..w {
+            let mut acc = [0.0f32; 4];
+            for dy in -r..=r {
+                let s = scratch[clamp(dy, h) * w + x];
+                (0..4).for_each(|k| acc[k] += s[k]);
+            }
+            for y in 0..h {
+                let mean = [acc[0] / area, acc[1] / area, acc[2] / area];
+                let mean_sq = acc[3] / (3.0 * area);
+                let var = (mean_sq - (mean[0] * mean[0] + mean[1] * mean[1] + mean[2] * mean[2]) / 3.0).max(0.0);
+                let inv = 1.0 / (var + floor_sq).sqrt();
+                let p = self.pixels[y * w + x];
+                dst.pixels[y * w + x] = [(p[0] - mean[0]) * inv, (p[1] - mean[1]) * inv, (p[2] - mean[2]) * inv, 0.0];
+                let out = scratch[clamp(y as isize - r, h) * w + x];
+                let inn = scratch[clamp(y as isize + r + 1, h) * w + x];
+                (0..4).for_each(|k| acc[k] += inn[k] - out[k]);
+            }
+        }
+    }
+}
+
+#[inline(always)]
+fn add_with_square(acc: &mut [f32; 4], p: Rgba, sign: f32) {
+    acc[0] += sign * p[0];
+    acc[1] += sign * p[1];
+    acc[2] += sign * p[2];
+    acc[3] += sign * (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
 }
 
 #[cfg(test)]
@@ -255,6 +344,30 @@ mod tests {
     }
 
     #[test]
+    fn local_normalisation_equalises_contrast() {
+        // The same pattern at two contrasts becomes the same after local normalisation.
+        let (w, h) = (20, 10);
+        let mut img = ColourImage::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let pattern = if (x + y) % 2 == 0 { 1.0 } else { -1.0 };
+                let gain = if x < w / 2 { 0.1 } else { 2.0 };
+                img.pixels_mut()[y * w + x] = [gain * pattern + 5.0, gain * pattern, -gain * pattern, 0.0];
+            }
+        }
+        let mut out = ColourImage::default();
+        let mut scratch = Vec::new();
+        img.local_normalise_into(&mut out, LocalNormalisation { radius: 1, floor: 1e-3 }, &mut scratch);
+        let left = out.at(3, 5);
+        let right = out.at(15, 5);
+        for k in 0..3 {
+            assert!((left[k] - right[k]).abs() < 0.05, "channel {k}: {} vs {}", left[k], right[k]);
+        }
+        // Mean removed: the +5 offset of the red channel is gone.
+        assert!(left[0].abs() < 2.0);
+    }
+
+    #[test]
     fn pyramid_levels_halve_and_keep_the_pixel_centre_convention() {
         // A ramp in x stays a ramp: coarse pixel i sits at fine coordinate 2i + 0.5.
         let (w, h) = (32, 16);
@@ -266,7 +379,7 @@ mod tests {
             }
         }
         let mut pyr = Pyramid::default();
-        pyr.rebuild(w, h, &rgb, 3);
+        pyr.rebuild(w, h, &rgb, 3, None);
         assert_eq!(pyr.len(), 3);
         assert_eq!((pyr.level(1).width(), pyr.level(1).height()), (16, 8));
         assert_eq!((pyr.level(2).width(), pyr.level(2).height()), (8, 4));

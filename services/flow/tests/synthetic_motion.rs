@@ -25,7 +25,8 @@ fn camera(name: &str, x: f64) -> Camera {
 }
 
 fn hash(ix: i64, iy: i64, salt: u64) -> f64 {
-    let mut h = (ix as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (iy as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ salt;
+    let mut h =
+        (ix as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (iy as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ salt;
     h = (h ^ (h >> 31)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     h ^= h >> 29;
     (h % 10_000) as f64 / 10_000.0
@@ -67,12 +68,8 @@ fn render(camera: &Camera, k: f64) -> Vec<u8> {
 
 fn run(variant: Variant, temporal: Temporal) -> (f64, f64, f64) {
     let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
-    let config = EngineConfig {
-        temporal,
-        depth_range: (2.0, 10.0),
-        speed_bound: 0.2,
-        ..EngineConfig::for_variant(variant)
-    };
+    let config =
+        EngineConfig { temporal, depth_range: (2.0, 10.0), speed_bound: 0.2, ..EngineConfig::for_variant(variant) };
     let mut engine = SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine");
     let frames = if temporal == Temporal::TwoFrame { 2 } else { 3 };
     let mut done = false;

@@ -76,8 +76,14 @@ mod tests {
     #[test]
     fn records_are_one_json_object_per_line_with_the_documented_keys() {
         let mut objects = BTreeMap::new();
-        objects.insert("head".to_string(), ObjectSample { pos: [0.0, 1.6, 2.0], vel: [0.0; 3], confidence: 0.9, state: TrackState::Tracked });
-        objects.insert("left_hand".to_string(), ObjectSample { pos: [0.2, 1.0, 1.8], vel: [0.1, 0.0, 0.0], confidence: 0.5, state: TrackState::Predicted });
+        objects.insert(
+            "head".to_string(),
+            ObjectSample { pos: [0.0, 1.6, 2.0], vel: [0.0; 3], confidence: 0.9, state: TrackState::Tracked },
+        );
+        objects.insert(
+            "left_hand".to_string(),
+            ObjectSample { pos: [0.2, 1.0, 1.8], vel: [0.1, 0.0, 0.0], confidence: 0.5, state: TrackState::Predicted },
+        );
         let mut sink = JsonLinesSink::new(Vec::new());
         sink.write(&TrajectoryRecord { frame: 0, t: 0.0, objects: objects.clone() }).expect("write");
         sink.write(&TrajectoryRecord { frame: 1, t: 1.0 / 30.0, objects }).expect("write");

@@ -1,0 +1,356 @@
+//! The `handflow` command line: argument parsing and reports. Each command is a thin layer
+//! over the library modules.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand};
+use handflow_flow::Variant;
+use serde_json::json;
+
+use crate::flow_eval::{engine_config, load_problem, run_once, EvalOptions, RunResult};
+use crate::middlebury::{write_maps, Layout};
+
+/// Where the demo looks for the built-in scene, relative to the working directory.
+pub const DEFAULT_SCENE: &str = "../shared/data/middlebury/teddy";
+
+/// handflow: 3D trajectories of head and hands from calibrated cameras, by clustered scene
+/// flow. Without a command, runs the demo: the scene-flow evaluation on the built-in
+/// Middlebury Teddy scene.
+#[derive(Parser, Debug)]
+#[command(name = "handflow", version, about, long_about = None)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Measure accuracy against ground truth.
+    #[command(subcommand)]
+    Eval(EvalCommand),
+    /// Measure speed (and accuracy over several seeds).
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Subcommand, Debug)]
+enum EvalCommand {
+    /// Scene flow on a Middlebury multi-baseline scene (EVALUATION.md section 1).
+    Middlebury(MiddleburyArgs),
+}
+
+#[derive(Subcommand, Debug)]
+enum BenchCommand {
+    /// Seconds per frame and likelihood evaluations per second, one thread and all cores.
+    Flow(BenchFlowArgs),
+    /// Accuracy averaged over seeds, for both layouts.
+    Accuracy(BenchAccuracyArgs),
+}
+
+/// Engine selection shared by the commands.
+#[derive(Args, Debug, Clone)]
+struct EngineArgs {
+    /// Engine variant: `handflow` (default) or `paper` (the published method).
+    #[arg(long, default_value = "handflow")]
+    variant: Variant,
+    /// Scene Particles per ray (default 10).
+    #[arg(long)]
+    particles_per_ray: Option<usize>,
+    /// Override any engine configuration field, e.g. `--set propagation=false` (repeatable).
+    #[arg(long = "set", value_name = "FIELD=VALUE")]
+    overrides: Vec<String>,
+}
+
+#[derive(Args, Debug)]
+struct MiddleburyArgs {
+    /// Scene folder (nine views im0..im8.ppm, dispK.pgm, scene.toml).
+    #[arg(long, default_value = DEFAULT_SCENE)]
+    scene: PathBuf,
+    /// `multiview` (8 images, 2 frames) or `fb` (9 images, 3 frames).
+    #[arg(long, default_value = "multiview")]
+    layout: Layout,
+    #[command(flatten)]
+    engine: EngineArgs,
+    /// Random seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
+    /// Also write the estimated maps (PNG to look at, PFM for other tools) into this folder.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct BenchFlowArgs {
+    /// Scene folder.
+    #[arg(long, default_value = DEFAULT_SCENE)]
+    scene: PathBuf,
+    /// `multiview` or `fb`.
+    #[arg(long, default_value = "multiview")]
+    layout: Layout,
+    #[command(flatten)]
+    engine: EngineArgs,
+    /// Runs per thread count; the fastest counts (default 3).
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
+struct BenchAccuracyArgs {
+    /// Scene folder.
+    #[arg(long, default_value = DEFAULT_SCENE)]
+    scene: PathBuf,
+    #[command(flatten)]
+    engine: EngineArgs,
+    /// Number of seeds (0, 1, ..); the table shows their mean.
+    #[arg(long, default_value_t = 3)]
+    seeds: u64,
+    /// Layouts to run, comma separated.
+    #[arg(long, default_value = "multiview,fb", value_delimiter = ',')]
+    layouts: Vec<Layout>,
+    /// Print JSON (one object per layout) instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Entry point of the binary.
+pub fn main() -> ExitCode {
+    init_logging();
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("handflow: error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_env("HANDFLOW_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        None => demo(),
+        Some(Command::Eval(EvalCommand::Middlebury(args))) => eval_middlebury(&args),
+        Some(Command::Bench(BenchCommand::Flow(args))) => bench_flow(&args),
+        Some(Command::Bench(BenchCommand::Accuracy(args))) => bench_accuracy(&args),
+    }
+}
+
+/// The no-argument demo: both layouts of the built-in scene with the default engine.
+fn demo() -> Result<()> {
+    let scene = Path::new(DEFAULT_SCENE);
+    if !scene.join("scene.toml").is_file() {
+        anyhow::bail!(
+            "the demo scene `{}` is not here (run from the repository root, next to `../shared`), \
+             or evaluate your own scene: handflow eval middlebury --scene DIR --layout multiview",
+            scene.display()
+        );
+    }
+    println!("handflow demo: multi-view scene flow on `{}` (EVALUATION.md section 1)\n", scene.display());
+    for layout in [Layout::Multiview, Layout::Fb] {
+        let out = PathBuf::from("out").join(format!("middlebury-{layout}"));
+        let args = MiddleburyArgs {
+            scene: scene.to_path_buf(),
+            layout,
+            engine: EngineArgs { variant: Variant::Handflow, particles_per_ray: None, overrides: vec![] },
+            seed: 0,
+            threads: None,
+            json: false,
+            out: Some(out),
+        };
+        eval_middlebury(&args)?;
+        println!();
+    }
+    Ok(())
+}
+
+fn options(engine: &EngineArgs, seed: u64) -> EvalOptions {
+    EvalOptions {
+        variant: engine.variant,
+        particles_per_ray: engine.particles_per_ray,
+        seed,
+        overrides: engine.overrides.clone(),
+    }
+}
+
+fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
+    let mut builder = rayon::ThreadPoolBuilder::new();
+    if let Some(n) = threads {
+        anyhow::ensure!(n > 0, "--threads must be at least 1");
+        builder = builder.num_threads(n);
+    }
+    builder.build().context("starting worker threads")
+}
+
+fn eval_middlebury(args: &MiddleburyArgs) -> Result<()> {
+    let (scene, problem) = load_problem(&args.scene, args.layout)?;
+    let config = engine_config(&problem, args.layout, &options(&args.engine, args.seed))?;
+    let pool = thread_pool(args.threads)?;
+    let threads = pool.current_num_threads();
+    let result = pool.install(|| run_once(&scene, &problem, config.clone()))?;
+    let written = match &args.out {
+        Some(dir) => write_maps(dir, &problem, &result.field.position, &result.field.velocity)?,
+        None => Vec::new(),
+    };
+    if args.json {
+        let report = report_json(&scene.name, args.layout, &config, args.seed, threads, &result);
+        println!("{report}");
+    } else {
+        print_report(&scene.name, args.layout, &config, args.seed, threads, &result);
+        if let Some(dir) = &args.out {
+            println!("maps written to {} ({} files)", dir.display(), written.len());
+        }
+    }
+    Ok(())
+}
+
+fn report_json(
+    scene: &str,
+    layout: Layout,
+    config: &handflow_flow::EngineConfig,
+    seed: u64,
+    threads: usize,
+    r: &RunResult,
+) -> serde_json::Value {
+    json!({
+        "scene": scene,
+        "layout": layout.to_string(),
+        "variant": config.variant.name(),
+        "of_rmse_px": r.metrics.of_rmse_px,
+        "zflow_rmse": r.metrics.zflow_rmse,
+        "structure_rmse_px": r.metrics.structure_rmse_px,
+        "aae_deg": r.metrics.aae_deg,
+        "seconds_per_frame": r.stats.seconds,
+        "particles_per_ray": config.particles_per_ray,
+        "seed": seed,
+        "threads": threads,
+        "pixels": r.metrics.pixels,
+        "evaluations": r.stats.evaluations,
+    })
+}
+
+fn print_report(
+    scene: &str,
+    layout: Layout,
+    config: &handflow_flow::EngineConfig,
+    seed: u64,
+    threads: usize,
+    r: &RunResult,
+) {
+    let m = &r.metrics;
+    println!(
+        "scene {scene}, layout {layout}, variant {}, {} particles/ray, seed {seed}, {threads} threads",
+        config.variant.name(),
+        config.particles_per_ray
+    );
+    println!("  optical flow RMSE   {:8.3} px", m.of_rmse_px);
+    println!("  Z flow RMSE         {:8.4}", m.zflow_rmse);
+    println!("  structure RMSE      {:8.3} px", m.structure_rmse_px);
+    println!("  AAE                 {:8.2} deg", m.aae_deg);
+    println!("  time                {:8.3} s/frame ({} pixels with truth)", r.stats.seconds, m.pixels);
+}
+
+fn bench_flow(args: &BenchFlowArgs) -> Result<()> {
+    let (scene, problem) = load_problem(&args.scene, args.layout)?;
+    let config = engine_config(&problem, args.layout, &options(&args.engine, 0))?;
+    let repeats = args.repeats.max(1);
+    let fastest = |threads: Option<usize>| -> Result<(f64, u64, usize)> {
+        let pool = thread_pool(threads)?;
+        let mut best = f64::INFINITY;
+        let mut evals = 0;
+        for _ in 0..repeats {
+            let r = pool.install(|| run_once(&scene, &problem, config.clone()))?;
+            best = best.min(r.stats.seconds);
+            evals = r.stats.evaluations;
+        }
+        Ok((best, evals, pool.current_num_threads()))
+    };
+    let (single, _, _) = fastest(Some(1))?;
+    let (all, evals, threads) = fastest(None)?;
+    let eps = evals as f64 / all;
+    if args.json {
+        println!(
+            "{}",
+            json!({
+                "scene": scene.name,
+                "layout": args.layout.to_string(),
+                "variant": config.variant.name(),
+                "particles_per_ray": config.particles_per_ray,
+                "seconds_per_frame_1_thread": single,
+                "seconds_per_frame": all,
+                "evaluations_per_second": eps,
+                "evaluations_per_frame": evals,
+                "threads": threads,
+                "speedup": single / all,
+            })
+        );
+    } else {
+        println!(
+            "scene {}, layout {}, variant {}, {} particles/ray, best of {repeats}",
+            scene.name,
+            args.layout,
+            config.variant.name(),
+            config.particles_per_ray
+        );
+        println!("  1 thread     {single:8.3} s/frame");
+        println!("  {threads} threads    {all:8.3} s/frame  ({:.2}x)", single / all);
+        println!("  likelihood evaluations {evals} per frame, {:.2} M/s on {threads} threads", eps / 1e6);
+    }
+    Ok(())
+}
+
+fn bench_accuracy(args: &BenchAccuracyArgs) -> Result<()> {
+    for &layout in &args.layouts {
+        let (scene, problem) = load_problem(&args.scene, layout)?;
+        let mut sums = [0f64; 5];
+        let mut per_seed = Vec::new();
+        for seed in 0..args.seeds.max(1) {
+            let config = engine_config(&problem, layout, &options(&args.engine, seed))?;
+            let r = run_once(&scene, &problem, config)?;
+            let m = &r.metrics;
+            for (s, v) in
+                sums.iter_mut().zip([m.of_rmse_px, m.zflow_rmse, m.structure_rmse_px, m.aae_deg, r.stats.seconds])
+            {
+                *s += v;
+            }
+            per_seed.push(json!({"seed": seed, "of_rmse_px": m.of_rmse_px, "zflow_rmse": m.zflow_rmse, "structure_rmse_px": m.structure_rmse_px, "aae_deg": m.aae_deg, "seconds_per_frame": r.stats.seconds}));
+        }
+        let k = args.seeds.max(1) as f64;
+        let mean = sums.map(|s| s / k);
+        if args.json {
+            println!(
+                "{}",
+                json!({"scene": scene.name, "layout": layout.to_string(), "variant": args.engine.variant.name(), "seeds": args.seeds,
+                    "overrides": args.engine.overrides,
+                    "of_rmse_px": mean[0], "zflow_rmse": mean[1], "structure_rmse_px": mean[2], "aae_deg": mean[3], "seconds_per_frame": mean[4], "runs": per_seed})
+            );
+        } else {
+            println!(
+                "| {} | {layout} | {} | {:.3} | {:.4} | {:.3} | {:.2} | {:.2} |",
+                scene.name,
+                args.engine.variant.name(),
+                mean[0],
+                mean[1],
+                mean[2],
+                mean[3],
+                mean[4]
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,7 @@
+//! handflow's front door: the command line that evaluates, benchmarks and (later) runs the
+//! pipeline. The library half holds everything the commands do, so tests can call it
+//! without spawning processes.
+
+pub mod cli;
+pub mod flow_eval;
+pub mod middlebury;

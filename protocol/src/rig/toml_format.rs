@@ -1,0 +1,402 @@
+//! Reading and writing the anipose / Pose2Sim rig TOML layout.
+//!
+//! Parsing goes through `toml::Value` by hand rather than serde derive so that
+//! every error can name the camera, the field and what exactly is wrong.
+
+use std::fmt::{self, Write as _};
+
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+use serde::de::{Deserialize, Deserializer, MapAccess, Visitor};
+use toml::Value;
+
+use super::camera::rotation_problem;
+use super::{Camera, Distortion, Rig, RigError};
+
+/// Tables with this name and no `matrix` hold calibration metadata, not a camera.
+const METADATA_TABLE: &str = "metadata";
+
+/// The top-level entries in file order. `toml::Table` sorts its keys unless
+/// toml's `preserve_order` feature is on; toml's deserializer itself yields
+/// them in document order, so collecting them here keeps the camera order
+/// without changing the feature for the whole workspace.
+struct OrderedRoot(Vec<(String, Value)>);
+
+impl<'de> Deserialize<'de> for OrderedRoot {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct RootVisitor;
+        impl<'de> Visitor<'de> for RootVisitor {
+            type Value = OrderedRoot;
+            fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("a TOML document")
+            }
+            fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<OrderedRoot, A::Error> {
+                let mut entries = Vec::new();
+                while let Some(entry) = map.next_entry::<String, Value>()? {
+                    entries.push(entry);
+                }
+                Ok(OrderedRoot(entries))
+            }
+        }
+        deserializer.deserialize_map(RootVisitor)
+    }
+}
+
+/// Parses a rig file's text.
+pub(crate) fn parse(text: &str) -> Result<Rig, RigError> {
+    let root: OrderedRoot = toml::from_str(text).map_err(|e| syntax_error(text, &e))?;
+    let mut cameras: Vec<Camera> = Vec::new();
+    let mut keys: Vec<String> = Vec::new();
+    for (key, value) in root.0 {
+        let Value::Table(table) = value else {
+            return Err(RigError::NotATable { key, found: describe(&value) });
+        };
+        if key == METADATA_TABLE && !table.contains_key("matrix") {
+            continue;
+        }
+        let camera = parse_camera(&key, &table)?;
+        if let Some(first) = cameras.iter().position(|c| c.name == camera.name) {
+            return Err(RigError::Field {
+                problem: format!("duplicate camera name `{}`, already used by camera `{}`", camera.name, keys[first]),
+                camera: key,
+                name: Some(camera.name),
+                field: "name".to_owned(),
+            });
+        }
+        cameras.push(camera);
+        keys.push(key);
+    }
+    if cameras.is_empty() {
+        return Err(RigError::NoCameras);
+    }
+    Ok(Rig { cameras })
+}
+
+/// Turns toml's error into [`RigError::Syntax`] with a 1-based line and column.
+fn syntax_error(text: &str, error: &toml::de::Error) -> RigError {
+    let before = error.span().and_then(|span| text.get(..span.start));
+    let (line, column) = match before {
+        Some(before) => {
+            let line = before.matches('\n').count() + 1;
+            let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+            (Some(line), Some(column))
+        }
+        None => (None, None),
+    };
+    RigError::Syntax { line, column, message: error.message().trim().to_owned() }
+}
+
+/// Where a problem is: the camera table's key and, once read, its name.
+struct Context<'a> {
+    key: &'a str,
+    name: Option<&'a str>,
+}
+
+impl Context<'_> {
+    fn error(&self, field: &str, problem: impl Into<String>) -> RigError {
+        RigError::Field {
+            camera: self.key.to_owned(),
+            name: self.name.map(str::to_owned),
+            field: field.to_owned(),
+            problem: problem.into(),
+        }
+    }
+}
+
+fn parse_camera(key: &str, table: &toml::Table) -> Result<Camera, RigError> {
+    let context = Context { key, name: None };
+    let name = match table.get("name") {
+        Some(Value::String(name)) => name.clone(),
+        Some(other) => return Err(context.error("name", format!("expected a string, found {}", describe(other)))),
+        None => return Err(context.error("name", "missing")),
+    };
+    let context = Context { key, name: Some(&name) };
+    let get = |field: &str| table.get(field).ok_or_else(|| context.error(field, "missing"));
+
+    // First, so that a fisheye file is reported as such rather than through
+    // whatever its distortions look like.
+    match table.get("fisheye") {
+        None | Some(Value::Boolean(false)) => {}
+        Some(Value::Boolean(true)) => {
+            return Err(context.error(
+                "fisheye",
+                "the fisheye lens model is not supported (only the OpenCV pinhole model with k1 k2 p1 p2 k3)",
+            ))
+        }
+        Some(other) => return Err(context.error("fisheye", format!("expected a boolean, found {}", describe(other)))),
+    }
+
+    let (width, height) = parse_size(get("size")?).map_err(|p| context.error("size", p))?;
+    let matrix =
+        parse_matrix3(get("matrix")?, "expected 3 rows of 3 numbers").map_err(|p| context.error("matrix", p))?;
+    let distortion = parse_distortions(get("distortions")?).map_err(|p| context.error("distortions", p))?;
+    let rotation = parse_rotation(get("rotation")?).map_err(|p| context.error("rotation", p))?;
+    let translation = parse_numbers(get("translation")?, 3, "expected 3 numbers (x, y, z)")
+        .map(|v| Vector3::new(v[0], v[1], v[2]))
+        .map_err(|p| context.error("translation", p))?;
+
+    Camera::new(name.clone(), width, height, matrix, distortion, rotation, translation).map_err(|error| match error {
+        // Camera::new knows the camera by name only; point at the table too.
+        RigError::Field { field, problem, .. } => context.error(&field, problem),
+        other => other,
+    })
+}
+
+/// "a string", "an array of 2 values", ... for error messages.
+fn describe(value: &Value) -> String {
+    match value {
+        Value::Array(items) => format!("an array of {} value{}", items.len(), plural(items.len())),
+        Value::Integer(i) => format!("an integer ({i})"),
+        Value::Float(f) => format!("a float ({f})"),
+        Value::String(s) => format!("a string ({s:?})"),
+        Value::Boolean(b) => format!("a boolean ({b})"),
+        Value::Datetime(_) => "a datetime".to_owned(),
+        Value::Table(_) => "a table".to_owned(),
+    }
+}
+
+fn plural(n: usize) -> &'static str {
+    if n == 1 {
+        ""
+    } else {
+        "s"
+    }
+}
+
+/// A finite number; integers are accepted for floats (anipose writes both).
+fn parse_number(value: &Value, what: &str) -> Result<f64, String> {
+    match value {
+        // i64 -> f64 may round beyond 2^53, which no calibration value reaches.
+        Value::Integer(i) => Ok(*i as f64),
+        Value::Float(f) if f.is_finite() => Ok(*f),
+        Value::Float(f) => Err(format!("{what} is not finite ({f})")),
+        other => Err(format!("{what}: expected a number, found {}", describe(other))),
+    }
+}
+
+/// Exactly `len` finite numbers; `expected` describes the shape for errors.
+fn parse_numbers(value: &Value, len: usize, expected: &str) -> Result<Vec<f64>, String> {
+    let numbers = parse_number_list(value, expected)?;
+    if numbers.len() != len {
+        return Err(format!("{expected}, found {} number{}", numbers.len(), plural(numbers.len())));
+    }
+    Ok(numbers)
+}
+
+/// An array of finite numbers of any length.
+fn parse_number_list(value: &Value, expected: &str) -> Result<Vec<f64>, String> {
+    let Value::Array(items) = value else {
+        return Err(format!("{expected}, found {}", describe(value)));
+    };
+    items.iter().enumerate().map(|(i, item)| parse_number(item, &format!("element {i}"))).collect()
+}
+
+fn parse_matrix3(value: &Value, expected: &str) -> Result<Matrix3<f64>, String> {
+    let Value::Array(rows) = value else {
+        return Err(format!("{expected}, found {}", describe(value)));
+    };
+    if rows.len() != 3 {
+        return Err(format!("{expected}, found {} row{}", rows.len(), plural(rows.len())));
+    }
+    let mut matrix = Matrix3::zeros();
+    for (i, row) in rows.iter().enumerate() {
+        let Value::Array(entries) = row else {
+            return Err(format!("{expected}, row {i} is {}", describe(row)));
+        };
+        if entries.len() != 3 {
+            return Err(format!("{expected}, row {i} has {} number{}", entries.len(), plural(entries.len())));
+        }
+        for (j, entry) in entries.iter().enumerate() {
+            matrix[(i, j)] = parse_number(entry, &format!("row {i}, column {j}"))?;
+        }
+    }
+    Ok(matrix)
+}
+
+fn parse_size(value: &Value) -> Result<(u32, u32), String> {
+    const EXPECTED: &str = "expected [width, height] as 2 positive integers";
+    let Value::Array(items) = value else {
+        return Err(format!("{EXPECTED}, found {}", describe(value)));
+    };
+    if items.len() != 2 {
+        return Err(format!("{EXPECTED}, found {} value{}", items.len(), plural(items.len())));
+    }
+    let dimension = |item: &Value, what: &str| -> Result<u32, String> {
+        // Pose2Sim writes sizes as floats (`1920.0`): accept integral values.
+        let number = match item {
+            Value::Integer(i) => *i as f64,
+            Value::Float(f) if f.is_finite() && f.fract() == 0.0 => *f,
+            Value::Float(f) => return Err(format!("{EXPECTED}, {what} is {f}")),
+            other => return Err(format!("{EXPECTED}, {what} is {}", describe(other))),
+        };
+        if number < 1.0 || number > f64::from(u32::MAX) {
+            return Err(format!("{EXPECTED}, {what} is {number}"));
+        }
+        Ok(number as u32)
+    };
+    Ok((dimension(&items[0], "width")?, dimension(&items[1], "height")?))
+}
+
+fn parse_distortions(value: &Value) -> Result<Distortion, String> {
+    const EXPECTED: &str = "expected 4 or 5 numbers (k1 k2 p1 p2 [k3])";
+    let c = parse_number_list(value, EXPECTED)?;
+    match c[..] {
+        // Four coefficients (Pose2Sim) mean k3 = 0, as in OpenCV.
+        [k1, k2, p1, p2] => Ok(Distortion { k1, k2, p1, p2, k3: 0.0 }),
+        [k1, k2, p1, p2, k3] => Ok(Distortion { k1, k2, p1, p2, k3 }),
+        _ => Err(format!("{EXPECTED}, found {} number{}", c.len(), plural(c.len()))),
+    }
+}
+
+/// A Rodrigues vector, or a 3x3 rotation matrix (some tools write that).
+fn parse_rotation(value: &Value) -> Result<Rotation3<f64>, String> {
+    const EXPECTED: &str = "expected a Rodrigues vector of 3 numbers or a 3x3 rotation matrix";
+    if let Value::Array(items) = value {
+        if let Some(Value::Array(_)) = items.first() {
+            let matrix = parse_matrix3(value, "3x3 rotation matrix: expected 3 rows of 3 numbers")?;
+            return rotation_from_matrix(&matrix);
+        }
+    }
+    let v = parse_numbers(value, 3, EXPECTED)?;
+    Ok(Rotation3::new(Vector3::new(v[0], v[1], v[2])))
+}
+
+/// Checks that `matrix` is a rotation, then removes its rounding noise (the
+/// nearest rotation, `U Vᵀ`) so that it survives saving as a Rodrigues vector.
+fn rotation_from_matrix(matrix: &Matrix3<f64>) -> Result<Rotation3<f64>, String> {
+    if let Some(problem) = rotation_problem(matrix) {
+        return Err(problem);
+    }
+    let svd = matrix.svd(true, true);
+    match (svd.u, svd.v_t) {
+        (Some(u), Some(v_t)) => Ok(Rotation3::from_matrix_unchecked(u * v_t)),
+        _ => Err("3x3 rotation matrix: SVD failed".to_owned()),
+    }
+}
+
+/// The Rodrigues vector (axis × angle, angle in [0, π]) of a rotation.
+///
+/// Not `Rotation3::scaled_axis`: that one returns zero for a half-turn (the
+/// axis it extracts from `R − Rᵀ` vanishes) and loses digits near 0 and π
+/// (acos of the trace). Going through the quaternion is accurate everywhere.
+pub(crate) fn rodrigues(rotation: &Rotation3<f64>) -> Vector3<f64> {
+    let q = UnitQuaternion::from_rotation_matrix(rotation);
+    // q and -q are the same rotation; w >= 0 gives the angle in [0, π].
+    let (w, v) = if q.w < 0.0 { (-q.w, -q.imag()) } else { (q.w, q.imag()) };
+    let s = v.norm();
+    if s == 0.0 {
+        return Vector3::zeros();
+    }
+    v * (2.0 * s.atan2(w) / s)
+}
+
+/// The rig in the file format.
+pub(crate) fn write(rig: &Rig) -> String {
+    let mut out = String::new();
+    // Writing into a String cannot fail.
+    let _ = write_into(rig, &mut out);
+    out
+}
+
+fn write_into(rig: &Rig, out: &mut String) -> fmt::Result {
+    for (i, camera) in rig.cameras.iter().enumerate() {
+        if i > 0 {
+            writeln!(out)?;
+        }
+        let k = &camera.matrix;
+        writeln!(out, "[cam_{i}]")?;
+        writeln!(out, "name = {}", quote(&camera.name))?;
+        writeln!(out, "size = [{}, {}]", camera.width, camera.height)?;
+        let rows: Vec<String> = (0..3).map(|r| list(&[k[(r, 0)], k[(r, 1)], k[(r, 2)]])).collect();
+        writeln!(out, "matrix = [{}]", rows.join(", "))?;
+        writeln!(out, "distortions = {}", list(&camera.distortion.as_array()))?;
+        writeln!(out, "rotation = {}", list(rodrigues(&camera.rotation).as_slice()))?;
+        writeln!(out, "translation = {}", list(camera.translation.as_slice()))?;
+        writeln!(out, "fisheye = false")?;
+    }
+    Ok(())
+}
+
+/// `[a, b, c]` with each number written to read back bit for bit.
+fn list(values: &[f64]) -> String {
+    let items: Vec<String> = values.iter().map(|&v| float(v)).collect();
+    format!("[{}]", items.join(", "))
+}
+
+/// Rust's `{:?}` is the shortest text that reads back to the same f64 and is
+/// valid TOML (`1.0`, `1e-7`, `inf`), except NaN.
+fn float(value: f64) -> String {
+    if value.is_nan() {
+        "nan".to_owned()
+    } else {
+        format!("{value:?}")
+    }
+}
+
+/// A TOML basic string.
+fn quote(text: &str) -> String {
+    let mut out = String::with_capacity(text.len() + 2);
+    out.push('"');
+    for c in text.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            '\n' => out.push_str("\\n"),
+            '\t' => out.push_str("\\t"),
+            '\r' => out.push_str("\\r"),
+            c if c.is_control() => {
+                let _ = write!(out, "\\u{:04X}", u32::from(c));
+            }
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f64::consts::PI;
+
+    #[test]
+    fn rodrigues_round_trips_including_half_turns_and_tiny_angles() {
+        let vectors = [
+            Vector3::zeros(),
+            Vector3::new(PI, 0.0, 0.0),
+            Vector3::new(0.0, -PI, 0.0),
+            Vector3::new(1.0, 1.0, 1.0).normalize() * PI,
+            Vector3::new(1.0, -2.0, 0.5).normalize() * (PI - 1e-9),
+            Vector3::new(1e-9, 2e-9, -3e-9),
+            Vector3::new(1e-200, 0.0, 0.0),
+            Vector3::new(0.3, -1.2, 0.7),
+        ];
+        for v in vectors {
+            let rotation = Rotation3::new(v);
+            let back = Rotation3::new(rodrigues(&rotation));
+            let error = (back.matrix() - rotation.matrix()).amax();
+            assert!(error < 1e-14, "{v:?}: {error}");
+        }
+        // What nalgebra's own scaled_axis gets wrong (see `rodrigues`'s doc).
+        let half_turn = Rotation3::new(Vector3::new(PI, 0.0, 0.0));
+        assert!((rodrigues(&half_turn).norm() - PI).abs() < 1e-15);
+    }
+
+    #[test]
+    fn floats_are_written_as_valid_toml_that_reads_back_exactly() {
+        for v in [0.0, -0.0, 1.0, 0.1, 1e-7, 1e16, 1e300, -2.5e-300, f64::MAX, f64::MIN_POSITIVE, 1.0 / 3.0] {
+            let text = format!("x = {}", float(v));
+            let table: toml::Table = toml::from_str(&text).unwrap();
+            let back = table["x"].as_float().unwrap();
+            assert_eq!(back.to_bits(), v.to_bits(), "{text}");
+        }
+    }
+
+    #[test]
+    fn names_are_quoted_so_they_read_back() {
+        for name in ["left", "a \"quoted\" \\ name", "tab\there", "ünï", "bell\u{7}"] {
+            let text = format!("x = {}", quote(name));
+            let table: toml::Table = toml::from_str(&text).unwrap();
+            assert_eq!(table["x"].as_str(), Some(name));
+        }
+    }
+}
