@@ -198,9 +198,9 @@ fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
 }
 
 fn eval_middlebury(args: &MiddleburyArgs) -> Result<()> {
+    let pool = thread_pool(args.threads)?;
     let (scene, problem) = load_problem(&args.scene, args.layout)?;
     let config = engine_config(&problem, args.layout, &options(&args.engine, args.seed))?;
-    let pool = thread_pool(args.threads)?;
     let threads = pool.current_num_threads();
     let result = pool.install(|| run_once(&scene, &problem, config.clone()))?;
     let written = match &args.out {
@@ -208,10 +208,10 @@ fn eval_middlebury(args: &MiddleburyArgs) -> Result<()> {
         None => Vec::new(),
     };
     if args.json {
-        let report = report_json(&scene.name, args.layout, &config, args.seed, threads, &result);
+        let report = report_json(&scene.name, args.layout, &config, threads, &result);
         println!("{report}");
     } else {
-        print_report(&scene.name, args.layout, &config, args.seed, threads, &result);
+        print_report(&scene.name, args.layout, &config, threads, &result);
         if let Some(dir) = &args.out {
             println!("maps written to {} ({} files)", dir.display(), written.len());
         }
@@ -223,10 +223,10 @@ fn report_json(
     scene: &str,
     layout: Layout,
     config: &handflow_flow::EngineConfig,
-    seed: u64,
     threads: usize,
     r: &RunResult,
 ) -> serde_json::Value {
+    let seed = config.seed;
     json!({
         "scene": scene,
         "layout": layout.to_string(),
@@ -244,14 +244,8 @@ fn report_json(
     })
 }
 
-fn print_report(
-    scene: &str,
-    layout: Layout,
-    config: &handflow_flow::EngineConfig,
-    seed: u64,
-    threads: usize,
-    r: &RunResult,
-) {
+fn print_report(scene: &str, layout: Layout, config: &handflow_flow::EngineConfig, threads: usize, r: &RunResult) {
+    let seed = config.seed;
     let m = &r.metrics;
     println!(
         "scene {scene}, layout {layout}, variant {}, {} particles/ray, seed {seed}, {threads} threads",
@@ -268,7 +262,8 @@ fn print_report(
 fn bench_flow(args: &BenchFlowArgs) -> Result<()> {
     let (scene, problem) = load_problem(&args.scene, args.layout)?;
     let config = engine_config(&problem, args.layout, &options(&args.engine, 0))?;
-    let repeats = args.repeats.max(1);
+    anyhow::ensure!(args.repeats > 0, "--repeats must be at least 1");
+    let repeats = args.repeats;
     let fastest = |threads: Option<usize>| -> Result<(f64, u64, usize)> {
         let pool = thread_pool(threads)?;
         let mut best = f64::INFINITY;
@@ -315,11 +310,12 @@ fn bench_flow(args: &BenchFlowArgs) -> Result<()> {
 }
 
 fn bench_accuracy(args: &BenchAccuracyArgs) -> Result<()> {
+    anyhow::ensure!(args.seeds > 0, "--seeds must be at least 1");
     for &layout in &args.layouts {
         let (scene, problem) = load_problem(&args.scene, layout)?;
         let mut sums = [0f64; 5];
         let mut per_seed = Vec::new();
-        for seed in 0..args.seeds.max(1) {
+        for seed in 0..args.seeds {
             let config = engine_config(&problem, layout, &options(&args.engine, seed))?;
             let r = run_once(&scene, &problem, config)?;
             let m = &r.metrics;
@@ -330,12 +326,12 @@ fn bench_accuracy(args: &BenchAccuracyArgs) -> Result<()> {
             }
             per_seed.push(json!({"seed": seed, "of_rmse_px": m.of_rmse_px, "zflow_rmse": m.zflow_rmse, "structure_rmse_px": m.structure_rmse_px, "aae_deg": m.aae_deg, "seconds_per_frame": r.stats.seconds}));
         }
-        let k = args.seeds.max(1) as f64;
+        let k = args.seeds as f64;
         let mean = sums.map(|s| s / k);
         if args.json {
             println!(
                 "{}",
-                json!({"scene": scene.name, "layout": layout.to_string(), "variant": args.engine.variant.name(), "seeds": args.seeds,
+                json!({"scene": scene.name, "layout": layout.to_string(), "variant": args.engine.variant.name(), "seeds": args.seeds, "particles_per_ray": args.engine.particles_per_ray.unwrap_or(handflow_flow::EngineConfig::default().particles_per_ray),
                     "overrides": args.engine.overrides,
                     "of_rmse_px": mean[0], "zflow_rmse": mean[1], "structure_rmse_px": mean[2], "aae_deg": mean[3], "seconds_per_frame": mean[4], "runs": per_seed})
             );

@@ -51,16 +51,17 @@ pub fn engine_config(problem: &Problem, layout: Layout, options: &EvalOptions) -
 /// Applies `field=value` overrides to a configuration through its serde form, so every
 /// field is reachable without a flag of its own.
 pub fn apply_overrides(config: EngineConfig, overrides: &[String]) -> Result<EngineConfig> {
-    if overrides.is_empty() {
-        return Ok(config);
-    }
-    let mut value = serde_json::to_value(&config).context("engine configuration")?;
-    let Some(map) = value.as_object_mut() else { bail!("engine configuration is not a table") };
+    let mut config = config;
     for item in overrides {
         let Some((key, raw)) = item.split_once('=') else {
             bail!("override `{item}`: expected `field=value`");
         };
         let key = key.trim();
+        if let Some(flag) = FLAG_FIELDS.iter().find_map(|(field, flag)| (*field == key).then_some(*flag)) {
+            bail!("override `{item}`: `{key}` has its own option, use {flag}");
+        }
+        let mut value = serde_json::to_value(&config).context("engine configuration")?;
+        let Some(map) = value.as_object_mut() else { bail!("engine configuration is not a table") };
         if !map.contains_key(key) {
             let known: Vec<&str> = map.keys().map(String::as_str).collect();
             bail!("override `{item}`: no engine field `{key}` (fields: {})", known.join(", "));
@@ -68,28 +69,39 @@ pub fn apply_overrides(config: EngineConfig, overrides: &[String]) -> Result<Eng
         let parsed =
             serde_json::from_str(raw.trim()).unwrap_or_else(|_| serde_json::Value::String(raw.trim().to_string()));
         map.insert(key.to_string(), parsed);
+        config = serde_json::from_value(value).with_context(|| format!("override `{item}`: bad value for `{key}`"))?;
     }
-    serde_json::from_value(value).context("engine configuration overrides")
+    Ok(config)
 }
+
+/// Engine fields that a command-line option or the layout sets: overriding them with
+/// `--set` would run something other than what the report says.
+const FLAG_FIELDS: [(&str, &str); 4] = [
+    ("seed", "--seed"),
+    ("variant", "--variant"),
+    ("particles_per_ray", "--particles-per-ray"),
+    ("temporal", "--layout (multiview is two-frame, fb forwards/backwards)"),
+];
 
 /// Runs the engine once on `problem` and scores its dense estimate.
 pub fn run_once(scene: &Scene, problem: &Problem, config: EngineConfig) -> Result<RunResult> {
     let mut engine = SceneFlowEngine::new(config, problem.cameras.clone(), problem.reference)?;
-    let mut seconds = 0.0;
-    let mut done = false;
+    let mut seconds = f64::NAN;
     for frame in &problem.frames {
         let views: Vec<&[u8]> = frame.iter().map(|&i| scene.images[i].as_slice()).collect();
         let started = std::time::Instant::now();
         let produced = engine.push_frame(&views)?.is_some();
-        seconds += started.elapsed().as_secs_f64();
-        done |= produced;
+        if produced {
+            seconds = started.elapsed().as_secs_f64();
+        }
     }
-    if !done {
+    if seconds.is_nan() {
         bail!("the engine produced no estimate for {} frames", problem.frames.len());
     }
     let mut stats = engine.stats();
-    // Estimator time for the frame, images loaded: pushing every frame (normalisation and
-    // pyramids) plus the filter itself.
+    // Time per frame as in a stream: the push of the frame that completes the estimate
+    // (its normalisation and pyramids, then the filter). Earlier frames' pyramids were
+    // built when they arrived and are reused, as in the live pipeline.
     stats.seconds = seconds;
     let field = engine.field().clone();
     let metrics = evaluate(problem, &field.position, &field.velocity);
@@ -100,5 +112,11 @@ pub fn run_once(scene: &Scene, problem: &Problem, config: EngineConfig) -> Resul
 pub fn load_problem(dir: &std::path::Path, layout: Layout) -> Result<(Scene, Problem)> {
     let scene = Scene::load(dir)?;
     let problem = Problem::new(&scene, layout)?;
+    if problem.truth.known() == 0 {
+        bail!(
+            "scene `{}`: no pixel of the {layout} reference view has ground truth (check `gt_views` in scene.toml)",
+            dir.display()
+        );
+    }
     Ok((scene, problem))
 }

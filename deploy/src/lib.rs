@@ -2,6 +2,8 @@
 //! pipeline. The library half holds everything the commands do, so tests can call it
 //! without spawning processes.
 
+#![cfg_attr(test, allow(clippy::unwrap_used))]
+
 pub mod cli;
 pub mod flow_eval;
 pub mod middlebury;

@@ -5,6 +5,8 @@
 //! covariance of a weighted 6D point set, velocity scaled into position units); the EM
 //! mixture and the labelling build on it.
 
+#![cfg_attr(test, allow(clippy::unwrap_used))]
+
 use nalgebra::{Matrix6, Vector3, Vector6};
 
 /// A scene point as clustering sees it.
@@ -45,7 +47,7 @@ pub fn weighted_moments(points: &[WeightedPoint], velocity_scale: f64) -> Option
         p.weight > 0.0 && p.weight.is_finite() && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
     };
     let total: f64 = points.iter().filter(usable).map(|p| p.weight).sum();
-    if !(total > 0.0) {
+    if total.is_nan() || total <= 0.0 {
         return None;
     }
     let mean = points.iter().filter(usable).fold(Vector6::zeros(), |acc, p| acc + p.feature(velocity_scale) * p.weight)

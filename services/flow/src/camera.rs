@@ -17,6 +17,9 @@ pub struct LevelProjection {
     cx: f32,
     cy: f32,
     distortion: Option<[f32; 5]>,
+    /// `K [R | t]` on this level, used when there is no distortion: one 3x4 product and one
+    /// division per projection.
+    matrix: [[f32; 4]; 3],
 }
 
 /// Points closer to a camera than this (camera-frame z) do not project.
@@ -29,7 +32,21 @@ impl LevelProjection {
         let k = camera.matrix;
         let r = camera.rotation.matrix();
         let d = camera.distortion;
+        let kl = nalgebra::Matrix3::new(
+            k[(0, 0)] * s,
+            k[(0, 1)] * s,
+            (k[(0, 2)] + 0.5) * s - 0.5,
+            0.0,
+            k[(1, 1)] * s,
+            (k[(1, 2)] + 0.5) * s - 0.5,
+            0.0,
+            0.0,
+            1.0,
+        );
+        let kr = kl * r;
+        let kt = kl * camera.translation;
         Self {
+            matrix: std::array::from_fn(|i| [kr[(i, 0)] as f32, kr[(i, 1)] as f32, kr[(i, 2)] as f32, kt[i] as f32]),
             rotation: std::array::from_fn(|i| std::array::from_fn(|j| r[(i, j)] as f32)),
             translation: std::array::from_fn(|i| camera.translation[i] as f32),
             fx: (k[(0, 0)] * s) as f32,
@@ -55,6 +72,17 @@ impl LevelProjection {
     /// Subpixel position of a world point on this level, or `None` behind the camera.
     #[inline(always)]
     pub fn project(&self, p: [f32; 3]) -> Option<[f32; 2]> {
+        if self.distortion.is_none() {
+            let m = &self.matrix;
+            let w = m[2][0] * p[0] + m[2][1] * p[1] + m[2][2] * p[2] + m[2][3];
+            if w <= MIN_Z {
+                return None;
+            }
+            let inv = 1.0 / w;
+            let u = m[0][0] * p[0] + m[0][1] * p[1] + m[0][2] * p[2] + m[0][3];
+            let v = m[1][0] * p[0] + m[1][1] * p[1] + m[1][2] * p[2] + m[1][3];
+            return Some([u * inv, v * inv]);
+        }
         let c = self.to_camera(p);
         if c[2] <= MIN_Z {
             return None;

@@ -355,7 +355,7 @@ impl SceneFlowEngine {
                 let sigma_level_px = self.config.diffusion_px * self.config.diffusion_shrink.powi(it as i32);
                 let last = level == 0 && it + 1 == loops;
                 let stage = (level * 64 + it) as u64;
-                evaluations += self.iterate(window, level, grid, sigma_level_px, last, frame, stage);
+                evaluations += self.iterate(window, level, grid, sigma_level_px, last, frame, stage, it > 0);
                 std::mem::swap(&mut self.best, &mut self.best_back);
             }
         }
@@ -394,7 +394,7 @@ impl SceneFlowEngine {
                 }
                 let target = y as usize * w + x as usize;
                 let depth = reference.to_camera(moved)[2];
-                if !(depth > 0.0) {
+                if depth.is_nan() || depth <= 0.0 {
                     continue;
                 }
                 let slot_count = usize::from(self.counts_back[target]);
@@ -525,6 +525,7 @@ impl SceneFlowEngine {
         last: bool,
         frame: u64,
         stage: u64,
+        elite_cost_valid: bool,
     ) -> u64 {
         let n = self.config.particles_per_ray;
         let grid = &self.grids[grid_level];
@@ -566,6 +567,12 @@ impl SceneFlowEngine {
             sigma_px: sigma_level_px * (1u32 << level) as f32,
             keep: ((n_images - 1) as f32 * self.config.view_keep_fraction).ceil().max(1.0) as usize,
             optical_axis: self.optical_axis,
+            sweep: if self.config.variant == Variant::Handflow && self.config.propagation {
+                Sweep::for_stage(stage)
+            } else {
+                Sweep::None
+            },
+            elite_cost_valid,
             best_prev: &self.best,
             top_level: level + 1 == self.config.pyramid_levels,
             last,
@@ -686,7 +693,7 @@ impl SceneFlowEngine {
 }
 
 /// Order in which rays are updated within one noise loop.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Sweep {
     /// All rays at once from the previous iteration's neighbours.
     None,
@@ -725,6 +732,11 @@ struct IterationContext<'a> {
     keep: usize,
     /// The reference camera's optical axis in the world: the direction of motion in depth.
     optical_axis: [f32; 3],
+    /// Update order of this loop.
+    sweep: Sweep,
+    /// Whether `best_prev` holds costs evaluated on this level (not the first loop after a
+    /// level change or a new frame), so the elite need not be evaluated again.
+    elite_cost_valid: bool,
     best_prev: &'a [Particle],
     top_level: bool,
     last: bool,
@@ -771,6 +783,12 @@ impl IterationContext<'_> {
         rng: &mut RayRng,
     ) -> u64 {
         let dir = self.dirs[ray];
+        // The ray's pixel on this level: full-resolution pixel (x, y) sits at
+        // ((x + 0.5) / 2^l - 0.5, ...) of level l.
+        let scale = 1.0 / (1u32 << self.level) as f32;
+        let (x, y) = ((ray % self.grid_width) as f32, (ray / self.grid_width) as f32);
+        let reference_colour = self.reference_image.sample((x + 0.5) * scale - 0.5, (y + 0.5) * scale - 0.5);
+
         let mut cands = [Particle::EMPTY; MAX_PARTICLES_PER_RAY];
         let mut likelihood = [0f32; MAX_PARTICLES_PER_RAY];
         let n = particles.len();
@@ -778,7 +796,7 @@ impl IterationContext<'_> {
         for k in 0..n {
             let p = self.space.diffuse(&particles[k], self.sigma_px, rng);
             let pos = point_on_ray(self.origin, dir, p.depth);
-            let l = variance_likelihood(self.images, pos, p.velocity, self.config.epsilon);
+            let l = variance_likelihood(self.images, reference_colour, pos, p.velocity, self.config.epsilon);
             cands[k] = Particle { cost: 1.0 / l, ..p };
             likelihood[k] = l;
             total += l;
@@ -812,6 +830,7 @@ impl IterationContext<'_> {
     /// particle of each neighbour and a few random ones compete under the robust windowed
     /// cost and the velocity prior; the ray keeps N of them by systematic resampling, always
     /// including the best.
+    #[allow(clippy::too_many_arguments)]
     fn update_ray_handflow(
         &self,
         ray: usize,
@@ -826,17 +845,10 @@ impl IterationContext<'_> {
         let have = usize::from(*count);
         let dir = self.dirs[ray];
         let (x, y) = (ray % self.grid_width, ray / self.grid_width);
-        let reference = if self.per_level_grid {
-            ReferenceWindow::gather(self.reference_image, x, y, self.config.window_radius, self.config.window_step)
-        } else {
-            ReferenceWindow::gather(
-                self.reference_image,
-                x >> self.level,
-                y >> self.level,
-                self.config.window_radius,
-                self.config.window_step,
-            )
-        };
+        let radius = if self.level == 0 { self.config.window_radius } else { self.config.coarse_window_radius };
+        // `handflow` rays live on this level's grid; `paper` rays are full-resolution pixels.
+        let (wx, wy) = if self.per_level_grid { (x, y) } else { (x >> self.level, y >> self.level) };
+        let reference = ReferenceWindow::gather(self.reference_image, wx, wy, radius, self.config.window_step);
         let mut cands = [Particle::EMPTY; MAX_CANDIDATES];
         let mut m = 0;
         // The previous best survives undiffused (elitism): a ray never loses its best
@@ -857,11 +869,13 @@ impl IterationContext<'_> {
         let mut consensus: Option<[f32; 3]> = None;
         if self.config.propagation {
             let (w, h) = (self.grid_width, self.grid_height);
+            // The neighbour the sweep comes from is offered as updated this iteration
+            // (`scan`), so its previous best is not offered again.
             let neighbours = [
-                (x > 0).then(|| ray - 1),
-                (x + 1 < w).then(|| ray + 1),
-                (y > 0).then(|| ray - w),
-                (y + 1 < h).then(|| ray + w),
+                (x > 0 && self.sweep != Sweep::Rows { reverse: false }).then(|| ray - 1),
+                (x + 1 < w && self.sweep != Sweep::Rows { reverse: true }).then(|| ray + 1),
+                (y > 0 && self.sweep != Sweep::Columns { reverse: false }).then(|| ray - w),
+                (y + 1 < h && self.sweep != Sweep::Columns { reverse: true }).then(|| ray + w),
             ];
             let previous = neighbours.into_iter().flatten().map(|nb| self.best_prev[nb]);
             let first = m;
@@ -900,10 +914,17 @@ impl IterationContext<'_> {
         let sight = self.optical_axis;
         let inv_t = 1.0 / self.config.temperature;
         let mut best_k = 0;
+        // The elite (slot 0) kept its cost from the previous loop on this level.
+        let elite_known = self.elite_cost_valid && self.best_prev[ray].is_valid() && cands[0].cost.is_finite();
+        let mut evaluations = 0u64;
         for k in 0..m {
             let p = &mut cands[k];
-            let pos = point_on_ray(self.origin, dir, p.depth);
-            p.cost = robust_window_cost(self.images, &reference, pos, p.velocity, self.config.truncation, self.keep);
+            if !(k == 0 && elite_known) {
+                let pos = point_on_ray(self.origin, dir, p.depth);
+                p.cost =
+                    robust_window_cost(self.images, &reference, pos, p.velocity, self.config.truncation, self.keep);
+                evaluations += 1;
+            }
             let v = p.velocity;
             let along = v[0] * sight[0] + v[1] * sight[1] + v[2] * sight[2];
             let across_sq = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2] - along * along).max(0.0);
@@ -943,7 +964,7 @@ impl IterationContext<'_> {
             p.weight = 1.0 / n as f32;
         }
         *count = n as u8;
-        m as u64
+        evaluations
     }
 }
 
@@ -968,11 +989,11 @@ fn weighted_mean(particles: &[Particle], weights: &[f32], mode: Option<&Particle
         }
         sum_w += w;
         inverse += w / p.depth;
-        for k in 0..3 {
-            vel[k] += w * p.velocity[k];
+        for (acc, v) in vel.iter_mut().zip(p.velocity) {
+            *acc += w * v;
         }
     }
-    if !(sum_w > 0.0) {
+    if sum_w.is_nan() || sum_w <= 0.0 {
         return RayEstimate::default();
     }
     RayEstimate {

@@ -93,11 +93,22 @@ impl ColourImage {
         if !(x >= 0.0 && y >= 0.0 && x <= max_x && y <= max_y) {
             return None;
         }
-        let ix = (x as usize).min(self.width.saturating_sub(2));
-        let iy = (y as usize).min(self.height.saturating_sub(2));
-        let fx = x - ix as f32;
-        let fy = y - iy as f32;
-        Some(self.bilinear_at(ix, iy, fx, fy))
+        if self.width < 2 || self.height < 2 {
+            return Some(self.bilinear_at(x as usize, y as usize, 0.0, 0.0));
+        }
+        // x, y >= 0: truncation is floor. The last column/row interpolates from its left/upper
+        // neighbour with weight 1, so the 2x2 block always lies inside.
+        let ix = (x as usize).min(self.width - 2);
+        let iy = (y as usize).min(self.height - 2);
+        let (fx, fy) = (x - ix as f32, y - iy as f32);
+        let top_start = iy * self.width + ix;
+        let bottom_start = top_start + self.width;
+        let (top, bottom) = (&self.pixels[top_start..top_start + 2], &self.pixels[bottom_start..bottom_start + 2]);
+        Some(std::array::from_fn(|k| {
+            let t = top[0][k] + (top[1][k] - top[0][k]) * fx;
+            let b = bottom[0][k] + (bottom[1][k] - bottom[0][k]) * fx;
+            t + (b - t) * fy
+        }))
     }
 
     /// Bilinear interpolation inside the 2x2 block whose top-left texel is `(ix, iy)`.
@@ -111,13 +122,11 @@ impl ColourImage {
         let b = self.pixels[iy * w + x1];
         let c = self.pixels[y1 * w + ix];
         let d = self.pixels[y1 * w + x1];
-        let mut out = [0.0; 4];
-        for k in 0..4 {
+        std::array::from_fn(|k| {
             let top = a[k] + (b[k] - a[k]) * fx;
             let bottom = c[k] + (d[k] - c[k]) * fx;
-            out[k] = top + (bottom - top) * fy;
-        }
-        out
+            top + (bottom - top) * fy
+        })
     }
 
     /// Writes into `dst` this image halved: a separable [1 3 3 1]/8 filter centred between

@@ -8,6 +8,8 @@
 //! particle machinery ([`Variant`]): `paper`, the method as published, and `handflow`, the
 //! default, which adds spatial coupling and robust matching.
 
+#![cfg_attr(test, allow(clippy::unwrap_used))]
+
 pub mod camera;
 pub mod config;
 mod engine;

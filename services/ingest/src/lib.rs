@@ -4,6 +4,8 @@
 //! into a caller-provided buffer (the buffer will be a loaned shared-memory sample), with
 //! errors that name the file. Recording replay and synthetic cameras build on it.
 
+#![cfg_attr(test, allow(clippy::unwrap_used))]
+
 use std::path::{Path, PathBuf};
 
 /// Why an image could not be ingested.

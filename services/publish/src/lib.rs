@@ -3,6 +3,8 @@
 //! For now this is the record of one frame's trajectory estimates and the JSON Lines sink
 //! that writes them, one object per frame; shared-memory publishing builds on it.
 
+#![cfg_attr(test, allow(clippy::unwrap_used))]
+
 use std::collections::BTreeMap;
 use std::io::Write;
 
