@@ -119,6 +119,10 @@ pub struct SceneFlowEngine {
     best_back: Vec<Particle>,
     estimates: Vec<RayEstimate>,
     refined: Vec<RayEstimate>,
+    /// Occupancy of full-resolution rays in this frame's prior (sparse mode keeps it).
+    prior_counts: Vec<u8>,
+    /// Whether `prior_counts` belongs to the frame being estimated.
+    prior_valid: bool,
     /// Frame index whose posterior `particles` holds at full resolution, if any.
     posterior_of: Option<u64>,
     field: DenseField,
@@ -136,9 +140,6 @@ impl SceneFlowEngine {
     /// An engine for `cameras` whose rays are those of `cameras[reference]`.
     pub fn new(config: EngineConfig, cameras: Vec<Camera>, reference: usize) -> Result<Self, FlowError> {
         config.validate().map_err(FlowError::Config)?;
-        if cameras.len() < 2 && config.temporal == Temporal::TwoFrame && cameras.is_empty() {
-            return Err(FlowError::Rig("the rig has no camera".into()));
-        }
         if cameras.is_empty() {
             return Err(FlowError::Rig("the rig has no camera".into()));
         }
@@ -198,6 +199,8 @@ impl SceneFlowEngine {
             best_back: vec![Particle::EMPTY; rays],
             estimates: vec![RayEstimate::default(); rays],
             refined: vec![RayEstimate::default(); rays],
+            prior_counts: vec![0; rays],
+            prior_valid: false,
             posterior_of: None,
             field: DenseField {
                 width,
@@ -336,8 +339,10 @@ impl SceneFlowEngine {
         let _span = tracing::debug_span!("scene_flow", frame, variant = self.config.variant.name()).entered();
         let use_prior = self.posterior_of == Some(frame.wrapping_sub(1));
         let mut evaluations = 0u64;
+        self.prior_valid = use_prior;
         if use_prior {
             self.carry_posterior_forward(frame);
+            self.prior_counts.copy_from_slice(&self.counts);
         }
         let levels = self.config.pyramid_levels;
         let per_level_grid = self.config.variant == Variant::Handflow;
@@ -499,6 +504,11 @@ impl SceneFlowEngine {
         std::mem::swap(&mut self.best, &mut self.best_back);
         let (src, src_counts) = (&self.particles_back, &self.counts_back);
         let coarse_best = &self.best_back;
+        // Sparse mode: a ray is occupied at this level only if the full-resolution ray at its
+        // centre held particles in the prior, so empty rays stay empty through the pyramid.
+        let occupancy = (self.config.coverage == Coverage::Sparse && self.prior_valid).then_some(&self.prior_counts);
+        let (full_w, full_h) = (self.grids[0].width, self.grids[0].height);
+        let s = 1usize << fine;
         self.particles[..fw * fh * n]
             .par_chunks_mut(n)
             .zip(self.counts[..fw * fh].par_iter_mut())
@@ -507,6 +517,13 @@ impl SceneFlowEngine {
             .for_each(|(ray, ((out, count), best))| {
                 let (i, j) = ((ray % fw) / 2, (ray / fw) / 2);
                 let from = j.min(ch - 1) * cw + i.min(cw - 1);
+                let centre =
+                    ((ray / fw) * s + s / 2).min(full_h - 1) * full_w + ((ray % fw) * s + s / 2).min(full_w - 1);
+                if occupancy.is_some_and(|o| o[centre] == 0) {
+                    *count = 0;
+                    *best = Particle::EMPTY;
+                    return;
+                }
                 *count = src_counts[from];
                 out.copy_from_slice(&src[from * n..from * n + n]);
                 *best = coarse_best[from];

@@ -36,6 +36,11 @@ pub fn weighted_median_refine(
         for (x, out) in row.iter_mut().enumerate() {
             let centre = guide.at(x, y);
             let own = input[y * w + x];
+            // An empty ray (sparse mode) stays empty: refinement must not invent estimates.
+            if own.confidence <= 0.0 {
+                *out = own;
+                continue;
+            }
             let mut weights = [0f32; 81];
             let mut n = 0;
             let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(h - 1));
@@ -75,7 +80,7 @@ pub fn weighted_median_refine(
             };
             let inverse_depth = gather(&|e| e.inverse_depth);
             let velocity = [gather(&|e| e.velocity[0]), gather(&|e| e.velocity[1]), gather(&|e| e.velocity[2])];
-            *out = RayEstimate { inverse_depth, velocity, confidence: own.confidence.max(1e-6) };
+            *out = RayEstimate { inverse_depth, velocity, confidence: own.confidence };
         }
     });
 }
@@ -124,9 +129,11 @@ mod tests {
             }
         }
         input[3 * w + 2].inverse_depth = 0.9;
+        input[6 * w + 9] = RayEstimate::default();
         let mut output = vec![RayEstimate::default(); w * h];
         weighted_median_refine(&input, &mut output, &guide, 2, 0.3);
         assert_eq!(output[3 * w + 2].inverse_depth, 0.1, "outlier replaced");
+        assert_eq!(output[6 * w + 9], RayEstimate::default(), "an empty ray stays empty");
         for y in 0..h {
             assert_eq!(output[y * w + w / 2 - 1].inverse_depth, 0.1, "edge kept, left");
             assert_eq!(output[y * w + w / 2].inverse_depth, 0.2, "edge kept, right");

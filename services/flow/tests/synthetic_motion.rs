@@ -126,3 +126,149 @@ fn paper_variant_gets_close_to_a_uniform_translation() {
     assert!(vx < 0.04, "median vx error {vx}");
     assert!(vy < 0.04, "median vy error {vy}");
 }
+
+fn render_views(cameras: &[Camera], k: f64) -> Vec<Vec<u8>> {
+    cameras.iter().map(|c| render(c, k)).collect()
+}
+
+fn engine(
+    variant: Variant,
+    temporal: Temporal,
+    coverage: handflow_flow::Coverage,
+    seed: u64,
+) -> (SceneFlowEngine, Vec<Camera>) {
+    let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
+    let config = EngineConfig {
+        temporal,
+        coverage,
+        seed,
+        depth_range: (2.0, 10.0),
+        speed_bound: 0.2,
+        ..EngineConfig::for_variant(variant)
+    };
+    (SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine"), cameras)
+}
+
+fn push(engine: &mut SceneFlowEngine, views: &[Vec<u8>]) -> bool {
+    let refs: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
+    engine.push_frame(&refs).expect("push").is_some()
+}
+
+fn central_median_vx_error(field: &handflow_flow::DenseField) -> f64 {
+    let mut errs: Vec<f64> = Vec::new();
+    for y in 12..(HEIGHT as usize - 12) {
+        for x in 12..(WIDTH as usize - 20) {
+            errs.push((f64::from(field.velocity[y * WIDTH as usize + x][0]) - VELOCITY[0]).abs());
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    errs[errs.len() / 2]
+}
+
+#[test]
+fn the_previous_posterior_is_the_prior_of_the_next_frame() {
+    let (mut engine, cameras) = engine(Variant::Handflow, Temporal::TwoFrame, handflow_flow::Coverage::Dense, 3);
+    assert!(!push(&mut engine, &render_views(&cameras, 0.0)), "one frame completes nothing");
+    assert!(push(&mut engine, &render_views(&cameras, 1.0)));
+    assert!(!engine.stats().used_temporal_prior, "the first estimate starts from the broad prior");
+    assert!(push(&mut engine, &render_views(&cameras, 2.0)));
+    let stats = engine.stats();
+    assert!(stats.used_temporal_prior, "consecutive frames carry the posterior over");
+    assert_eq!(stats.frame, 2);
+    let err = central_median_vx_error(engine.field());
+    assert!(err < 0.01, "median vx error with the temporal prior {err}");
+    // Particles are real weighted hypotheses on their rays.
+    let ray = 40 * WIDTH as usize + 40;
+    let particles = engine.ray_particles(ray);
+    assert_eq!(particles.len(), 10);
+    let total: f32 = particles.iter().map(|p| p.weight).sum();
+    assert!((total - 1.0).abs() < 1e-4, "weights of a ray sum to one: {total}");
+    let z = engine.particle_position(ray, &particles[0])[2];
+    assert!((f64::from(z) - PLANE_DEPTH).abs() < 0.5, "particle depth {z}");
+}
+
+#[test]
+fn sparse_mode_leaves_rays_empty_and_dense_mode_refills_them() {
+    // The plane moves right by 1.5 px per frame in the reference view, so after the
+    // constant-velocity prediction the leftmost column receives no particle.
+    for coverage in [handflow_flow::Coverage::Sparse, handflow_flow::Coverage::Dense] {
+        let (mut engine, cameras) = engine(Variant::Handflow, Temporal::TwoFrame, coverage, 5);
+        for k in 0..3 {
+            push(&mut engine, &render_views(&cameras, f64::from(k)));
+        }
+        let stats = engine.stats();
+        assert!(stats.used_temporal_prior);
+        let rays = (WIDTH * HEIGHT) as usize;
+        let empty: Vec<usize> = (0..rays).filter(|&r| engine.ray_particles(r).is_empty()).collect();
+        // The scene moved right: rays near the left border are the ones nothing moved onto.
+        let empty_on_the_left = empty.iter().filter(|&&r| r % WIDTH as usize <= 3).count();
+        let empty_rays_have_no_estimate =
+            (0..rays).filter(|&r| engine.ray_particles(r).is_empty()).all(|r| engine.field().depth[r].is_nan());
+        match coverage {
+            handflow_flow::Coverage::Sparse => {
+                assert!(stats.occupied_rays < rays, "some rays are empty");
+                assert!(!empty.is_empty(), "rays nothing moved onto stay empty");
+                // Elsewhere, forward-projected particles leave only splatting holes.
+                let left_share = empty_on_the_left as f64 / (4.0 * f64::from(HEIGHT));
+                let other_share =
+                    (empty.len() - empty_on_the_left) as f64 / ((f64::from(WIDTH) - 4.0) * f64::from(HEIGHT));
+                assert!(left_share > 5.0 * other_share, "empty share left {left_share}, elsewhere {other_share}");
+                assert!(empty_rays_have_no_estimate, "an empty ray has no estimate");
+            }
+            handflow_flow::Coverage::Dense => {
+                assert_eq!(stats.occupied_rays, rays, "every ray refilled");
+                assert!(empty.is_empty());
+            }
+        }
+    }
+}
+
+#[test]
+fn results_depend_on_the_seed_only_not_on_the_thread_count() {
+    let run = |threads: usize, seed: u64| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+        pool.install(|| {
+            let (mut engine, cameras) =
+                engine(Variant::Handflow, Temporal::TwoFrame, handflow_flow::Coverage::Dense, seed);
+            push(&mut engine, &render_views(&cameras, 0.0));
+            push(&mut engine, &render_views(&cameras, 1.0));
+            (engine.field().depth.clone(), engine.field().velocity.clone())
+        })
+    };
+    let one = run(1, 9);
+    let two = run(2, 9);
+    assert!(one.0.iter().zip(&two.0).all(|(a, b)| a.to_bits() == b.to_bits()), "depth identical across thread counts");
+    assert_eq!(one.1, two.1, "velocity identical across thread counts");
+    let other = run(2, 10);
+    assert_ne!(one.1, other.1, "another seed draws other particles");
+}
+
+#[test]
+fn forwards_backwards_is_one_frame_late_and_flush_estimates_the_last_frame() {
+    let (mut engine, cameras) =
+        engine(Variant::Handflow, Temporal::ForwardsBackwards, handflow_flow::Coverage::Dense, 1);
+    assert!(!push(&mut engine, &render_views(&cameras, 0.0)));
+    assert!(!push(&mut engine, &render_views(&cameras, 1.0)), "frame 1 waits for frame 2");
+    assert!(push(&mut engine, &render_views(&cameras, 2.0)));
+    assert_eq!(engine.stats().frame, 1, "the estimate is for the middle frame");
+    let last = engine.flush().is_some();
+    assert!(last, "flush estimates the last frame");
+    assert_eq!(engine.stats().frame, 2);
+    assert!(engine.stats().used_temporal_prior);
+    assert!(central_median_vx_error(engine.field()) < 0.01);
+    assert!(engine.flush().is_none(), "nothing is left after a flush");
+}
+
+#[test]
+fn bad_frames_are_refused_with_the_camera_named() {
+    let (mut engine, cameras) = engine(Variant::Handflow, Temporal::TwoFrame, handflow_flow::Coverage::Dense, 0);
+    let views = render_views(&cameras, 0.0);
+    let err = engine.push_frame(&[views[0].as_slice()]).expect_err("one view missing").to_string();
+    assert!(err.contains("expected 2 views"), "{err}");
+    let short = &views[1][..100];
+    let err = engine.push_frame(&[views[0].as_slice(), short]).expect_err("short view").to_string();
+    assert!(err.contains("`right`") && err.contains("96x72"), "{err}");
+    // Nothing accepted is lost: the engine still works after refusing.
+    assert!(!push(&mut engine, &views));
+    assert!(push(&mut engine, &render_views(&cameras, 1.0)));
+}
