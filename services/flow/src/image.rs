@@ -103,12 +103,17 @@ impl ColourImage {
         let (fx, fy) = (x - ix as f32, y - iy as f32);
         let top_start = iy * self.width + ix;
         let bottom_start = top_start + self.width;
-        let (top, bottom) = (&self.pixels[top_start..top_start + 2], &self.pixels[bottom_start..bottom_start + 2]);
-        Some(std::array::from_fn(|k| {
-            let t = top[0][k] + (top[1][k] - top[0][k]) * fx;
-            let b = bottom[0][k] + (bottom[1][k] - bottom[0][k]) * fx;
-            t + (b - t) * fy
-        }))
+        let (a, b) = (self.pixels[top_start], self.pixels[top_start + 1]);
+        let (c, d) = (self.pixels[bottom_start], self.pixels[bottom_start + 1]);
+        // Four weights broadcast over the four lanes: one SIMD multiply-add chain.
+        let (w00, w01) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy));
+        let (w10, w11) = ((1.0 - fx) * fy, fx * fy);
+        Some([
+            a[0] * w00 + b[0] * w01 + c[0] * w10 + d[0] * w11,
+            a[1] * w00 + b[1] * w01 + c[1] * w10 + d[1] * w11,
+            a[2] * w00 + b[2] * w01 + c[2] * w10 + d[2] * w11,
+            a[3] * w00 + b[3] * w01 + c[3] * w10 + d[3] * w11,
+        ])
     }
 
     /// Bilinear interpolation inside the 2x2 block whose top-left texel is `(ix, iy)`.
