@@ -12,12 +12,16 @@ const PLANE_DEPTH: f64 = 4.0;
 const VELOCITY: [f64; 3] = [0.06, -0.03, 0.0];
 
 fn camera(name: &str, x: f64) -> Camera {
+    distorted_camera(name, x, Distortion::default())
+}
+
+fn distorted_camera(name: &str, x: f64, distortion: Distortion) -> Camera {
     Camera::new(
         name,
         WIDTH,
         HEIGHT,
         Matrix3::new(FOCAL, 0.0, (WIDTH as f64 - 1.0) / 2.0, 0.0, FOCAL, (HEIGHT as f64 - 1.0) / 2.0, 0.0, 0.0, 1.0),
-        Distortion::default(),
+        distortion,
         Rotation3::identity(),
         Vector3::new(-x, 0.0, 0.0),
     )
@@ -67,7 +71,10 @@ fn render(camera: &Camera, k: f64) -> Vec<u8> {
 }
 
 fn run(variant: Variant, temporal: Temporal) -> (f64, f64, f64) {
-    let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
+    run_with(variant, temporal, vec![camera("left", 0.0), camera("right", 0.4)])
+}
+
+fn run_with(variant: Variant, temporal: Temporal, cameras: Vec<Camera>) -> (f64, f64, f64) {
     let config =
         EngineConfig { temporal, depth_range: (2.0, 10.0), speed_bound: 0.2, ..EngineConfig::for_variant(variant) };
     let mut engine = SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine");
@@ -113,6 +120,17 @@ fn handflow_recovers_a_uniform_translation() {
 #[test]
 fn handflow_forwards_backwards_recovers_a_uniform_translation() {
     let (depth, vx, vy) = run(Variant::Handflow, Temporal::ForwardsBackwards);
+    assert!(depth < 0.1, "median depth error {depth}");
+    assert!(vx < 0.01, "median vx error {vx}");
+    assert!(vy < 0.01, "median vy error {vy}");
+}
+
+#[test]
+fn handflow_recovers_a_uniform_translation_through_lens_distortion() {
+    // Barrel distortion of a few pixels at the corners; rays and projections both model it.
+    let lens = Distortion { k1: -0.15, k2: 0.02, p1: 0.001, p2: -0.001, k3: 0.0 };
+    let cameras = vec![distorted_camera("left", 0.0, lens), distorted_camera("right", 0.4, lens)];
+    let (depth, vx, vy) = run_with(Variant::Handflow, Temporal::TwoFrame, cameras);
     assert!(depth < 0.1, "median depth error {depth}");
     assert!(vx < 0.01, "median vx error {vx}");
     assert!(vy < 0.01, "median vy error {vy}");
