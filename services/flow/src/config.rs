@@ -83,6 +83,11 @@ pub struct EngineConfig {
     /// is 16x smaller than the fine one, so these cost a few percent of a frame and let
     /// hypotheses spread across the image before refinement.
     pub coarse_extra_loops: usize,
+    /// Rays of each pyramid level on that level's own pixel grid (true), or full-resolution
+    /// rays on every level, coarse levels only blurring the images (false). The paper does
+    /// not say which; coarse-to-fine hand-over copies a coarse ray's particles to the four
+    /// finer rays it covers. Default true in both variants.
+    pub per_level_rays: bool,
     /// Seed of every random draw (default 0). Same seed, same result, any thread count.
     pub seed: u64,
     /// Camera-frame depth range of the reference camera, world units (near, far).
@@ -182,6 +187,7 @@ impl Default for EngineConfig {
             pyramid_levels: 3,
             noise_loops: 2,
             coarse_extra_loops: 7,
+            per_level_rays: true,
             seed: 0,
             depth_range: (0.5, 10.0),
             speed_bound: 0.1,

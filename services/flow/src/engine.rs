@@ -159,7 +159,7 @@ impl SceneFlowEngine {
         let (width, height) = (ref_cam.width as usize, ref_cam.height as usize);
         let levels = config.pyramid_levels;
         let projections = (0..levels).map(|l| cameras.iter().map(|c| LevelProjection::new(c, l)).collect()).collect();
-        let grid_levels = if config.variant == Variant::Handflow { levels } else { 1 };
+        let grid_levels = if config.per_level_rays { levels } else { 1 };
         let grids: Vec<RayGrid> = (0..grid_levels).map(|l| ray_grid(ref_cam, l)).collect();
         let centre = ref_cam.centre();
         let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
@@ -345,7 +345,7 @@ impl SceneFlowEngine {
             self.prior_counts.copy_from_slice(&self.counts);
         }
         let levels = self.config.pyramid_levels;
-        let per_level_grid = self.config.variant == Variant::Handflow;
+        let per_level_grid = self.config.per_level_rays;
         let top = levels - 1;
         let top_grid = if per_level_grid { top } else { 0 };
         self.seed_top_level(top_grid, use_prior, frame);
@@ -355,7 +355,7 @@ impl SceneFlowEngine {
                 self.upsample_particles(level + 1, level);
             }
             let extra = if level == top { self.config.coarse_extra_loops } else { 0 };
-            let loops = self.config.noise_loops + if per_level_grid { extra } else { 0 };
+            let loops = self.config.noise_loops + if self.config.variant == Variant::Handflow { extra } else { 0 };
             for it in 0..loops {
                 let sigma_level_px = self.config.diffusion_px * self.config.diffusion_shrink.powi(it as i32);
                 let last = level == 0 && it + 1 == loops;
@@ -580,7 +580,7 @@ impl SceneFlowEngine {
             grid_width: gw,
             grid_height: gh,
             level,
-            per_level_grid: self.config.variant == Variant::Handflow,
+            per_level_grid: self.config.per_level_rays,
             sigma_px: sigma_level_px * (1u32 << level) as f32,
             keep: ((n_images - 1) as f32 * self.config.view_keep_fraction).ceil().max(1.0) as usize,
             optical_axis: self.optical_axis,
@@ -802,9 +802,13 @@ impl IterationContext<'_> {
         let dir = self.dirs[ray];
         // The ray's pixel on this level: full-resolution pixel (x, y) sits at
         // ((x + 0.5) / 2^l - 0.5, ...) of level l.
-        let scale = 1.0 / (1u32 << self.level) as f32;
         let (x, y) = ((ray % self.grid_width) as f32, (ray / self.grid_width) as f32);
-        let reference_colour = self.reference_image.sample((x + 0.5) * scale - 0.5, (y + 0.5) * scale - 0.5);
+        let reference_colour = if self.per_level_grid {
+            self.reference_image.sample(x, y)
+        } else {
+            let scale = 1.0 / (1u32 << self.level) as f32;
+            self.reference_image.sample((x + 0.5) * scale - 0.5, (y + 0.5) * scale - 0.5)
+        };
 
         let mut cands = [Particle::EMPTY; MAX_PARTICLES_PER_RAY];
         let mut likelihood = [0f32; MAX_PARTICLES_PER_RAY];
