@@ -19,7 +19,7 @@ pub const DEFAULT_SCENE: &str = "../shared/data/middlebury/teddy";
 /// flow. Without a command, runs the demo: the scene-flow evaluation on the built-in
 /// Middlebury Teddy scene.
 #[derive(Parser, Debug)]
-#[command(name = "handflow", version, about, long_about = None)]
+#[command(name = "handflow", version)]
 pub struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
@@ -139,7 +139,11 @@ pub fn main() -> ExitCode {
 fn init_logging() {
     let filter = tracing_subscriber::EnvFilter::try_from_env("HANDFLOW_LOG")
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .try_init();
 }
 
 fn run(cli: Cli) -> Result<()> {

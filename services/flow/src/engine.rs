@@ -374,6 +374,14 @@ impl SceneFlowEngine {
             occupied_rays,
             used_temporal_prior: use_prior,
         };
+        tracing::debug!(
+            frame,
+            evaluations,
+            seconds = self.stats.seconds,
+            occupied_rays,
+            temporal_prior = use_prior,
+            "scene flow estimated"
+        );
     }
 
     /// The prior of a new frame: the previous posterior moved by its own velocity
