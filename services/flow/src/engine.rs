@@ -303,7 +303,10 @@ impl SceneFlowEngine {
         };
         match window {
             Some(w) => {
-                self.estimate(w, started);
+                // Run the whole filter on a pool thread: its many parallel loops then queue
+                // work locally instead of through rayon's global injector, which allocates
+                // a block per 63 jobs sent from outside the pool.
+                rayon::scope(|_| self.estimate(w, started));
                 Ok(Some(&self.field))
             }
             None => Ok(None),
@@ -320,7 +323,7 @@ impl SceneFlowEngine {
             return None;
         }
         let w = self.window(2);
-        self.estimate(w, started);
+        rayon::scope(|_| self.estimate(w, started));
         Some(&self.field)
     }
 
