@@ -79,7 +79,7 @@ pub struct EngineConfig {
     /// `coarse_extra_loops`: measured on Teddy, 2 + 7 coarse loops beat 3 + 6 in accuracy
     /// and take 20% less time).
     pub noise_loops: usize,
-    /// Extra noise loops on the coarsest level, `handflow` only (default 7): the coarse grid
+    /// Extra noise loops on the coarsest level (default 7; 0 in `paper`): the coarse grid
     /// is 16x smaller than the fine one, so these cost a few percent of a frame and let
     /// hypotheses spread across the image before refinement.
     pub coarse_extra_loops: usize,

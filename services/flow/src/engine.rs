@@ -358,7 +358,7 @@ impl SceneFlowEngine {
                 self.upsample_particles(level + 1, level);
             }
             let extra = if level == top { self.config.coarse_extra_loops } else { 0 };
-            let loops = self.config.noise_loops + if self.config.variant == Variant::Handflow { extra } else { 0 };
+            let loops = self.config.noise_loops + extra;
             for it in 0..loops {
                 let sigma_level_px = self.config.diffusion_px * self.config.diffusion_shrink.powi(it as i32);
                 let last = level == 0 && it + 1 == loops;
