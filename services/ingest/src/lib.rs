@@ -1,12 +1,17 @@
 //! handflow's camera-ingest stage: getting camera images into frame buffers.
 //!
-//! For now this is image decoding: a PNG, JPEG, PPM or BMP file decoded as RGB8 straight
-//! into a caller-provided buffer (the buffer will be a loaned shared-memory sample), with
-//! errors that name the file. Recording replay and synthetic cameras build on it.
+//! Image decoding (a PNG, JPEG, PPM or BMP file decoded as RGB8 straight into a
+//! caller-provided buffer, which will be a loaned shared-memory sample, with errors that name
+//! the file) and [`recording`]s: folders of per-camera images with a rig and a frame table,
+//! checked on opening and read as synchronised frame sets, cameras decoded in parallel.
 
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
 use std::path::{Path, PathBuf};
+
+pub mod recording;
+
+pub use recording::{FrameEntry, FrameInfo, Recording, RecordingError};
 
 /// Why an image could not be ingested.
 #[derive(Debug, thiserror::Error)]
