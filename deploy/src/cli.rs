@@ -11,6 +11,7 @@ use serde_json::json;
 
 use crate::flow_eval::{engine_config, load_problem, run_once, EvalOptions, RunResult};
 use crate::middlebury::{write_maps, Layout};
+use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec, PRESETS};
 
 /// Where the demo looks for the built-in scene, relative to the working directory.
 pub const DEFAULT_SCENE: &str = "../shared/data/middlebury/teddy";
@@ -33,6 +34,24 @@ enum Command {
     /// Measure speed (and accuracy over several seeds).
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Ray-trace a synthetic signer scene into a recording with exact ground truth.
+    Render(RenderArgs),
+}
+
+#[derive(Args, Debug)]
+struct RenderArgs {
+    /// Scene description (TOML, the layout of `scene.toml` in a rendered recording).
+    #[arg(long, conflicts_with = "preset")]
+    scene: Option<PathBuf>,
+    /// Built-in scene: signer-3cam (default), signer-2cam-narrow, hands-cross, occluded-side.
+    #[arg(long)]
+    preset: Option<String>,
+    /// Output folder (created).
+    #[arg(long)]
+    out: PathBuf,
+    /// Number of frames (default: the scene's).
+    #[arg(long)]
+    frames: Option<u32>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -47,6 +66,21 @@ enum BenchCommand {
     Flow(BenchFlowArgs),
     /// Accuracy averaged over seeds, for both layouts.
     Accuracy(BenchAccuracyArgs),
+    /// Rendering speed of a synthetic scene (to memory), one thread and all cores.
+    Render(BenchRenderArgs),
+}
+
+#[derive(Args, Debug)]
+struct BenchRenderArgs {
+    /// Built-in scene.
+    #[arg(long, default_value = "signer-3cam")]
+    preset: String,
+    /// Frames rendered per measurement.
+    #[arg(long, default_value_t = 60)]
+    frames: u32,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 /// Engine selection shared by the commands.
@@ -152,6 +186,8 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Eval(EvalCommand::Middlebury(args))) => eval_middlebury(&args),
         Some(Command::Bench(BenchCommand::Flow(args))) => bench_flow(&args),
         Some(Command::Bench(BenchCommand::Accuracy(args))) => bench_accuracy(&args),
+        Some(Command::Bench(BenchCommand::Render(args))) => bench_render(&args),
+        Some(Command::Render(args)) => render(&args),
     }
 }
 
@@ -351,6 +387,77 @@ fn bench_accuracy(args: &BenchAccuracyArgs) -> Result<()> {
                 mean[4]
             );
         }
+    }
+    Ok(())
+}
+
+fn scene_spec(scene: Option<&Path>, preset: Option<&str>) -> Result<SceneSpec> {
+    match (scene, preset) {
+        (Some(path), _) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading scene `{}`", path.display()))?;
+            let spec: SceneSpec = toml::from_str(&text).with_context(|| format!("scene `{}`", path.display()))?;
+            spec.validate().map_err(|e| anyhow::anyhow!("scene `{}`: {e}", path.display()))?;
+            Ok(spec)
+        }
+        (None, name) => {
+            let name = name.unwrap_or("signer-3cam");
+            SceneSpec::preset(name)
+                .ok_or_else(|| anyhow::anyhow!("unknown preset `{name}` (presets: {})", PRESETS.join(", ")))
+        }
+    }
+}
+
+fn render(args: &RenderArgs) -> Result<()> {
+    let mut spec = scene_spec(args.scene.as_deref(), args.preset.as_deref())?;
+    if let Some(frames) = args.frames {
+        anyhow::ensure!(frames > 0, "--frames must be at least 1");
+        spec.frames = frames;
+    }
+    let renderer = Renderer::new(&spec).map_err(anyhow::Error::msg)?;
+    let started = std::time::Instant::now();
+    write_recording(&renderer, &args.out, spec.frames)?;
+    println!(
+        "rendered {} frames x {} cameras ({}x{}) into {} in {:.1} s (images, masks/, truth.json)",
+        spec.frames,
+        spec.cameras.angles_deg.len(),
+        spec.width,
+        spec.height,
+        args.out.display(),
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn bench_render(args: &BenchRenderArgs) -> Result<()> {
+    let spec = scene_spec(None, Some(&args.preset))?;
+    anyhow::ensure!(args.frames > 0, "--frames must be at least 1");
+    let renderer = Renderer::new(&spec).map_err(anyhow::Error::msg)?;
+    let views = spec.cameras.angles_deg.len();
+    let measure = |threads: Option<usize>| -> Result<(f64, usize)> {
+        let pool = thread_pool(threads)?;
+        let fps = pool.install(|| {
+            let mut rgb = vec![0u8; renderer.view_len() * views];
+            let mut masks = vec![0u8; renderer.view_len() / 3 * views];
+            let started = std::time::Instant::now();
+            for frame in 0..args.frames {
+                renderer.render_into(frame, &mut rgb, &mut masks);
+            }
+            f64::from(args.frames) / started.elapsed().as_secs_f64()
+        });
+        Ok((fps, pool.current_num_threads()))
+    };
+    let (single, _) = measure(Some(1))?;
+    let (all, threads) = measure(None)?;
+    if args.json {
+        println!(
+            "{}",
+            json!({"preset": args.preset, "cameras": views, "width": spec.width, "height": spec.height,
+                "frames_per_second_1_thread": single, "frames_per_second": all, "threads": threads})
+        );
+    } else {
+        println!("render {}: {views} cameras, {}x{}, {} frames", args.preset, spec.width, spec.height, args.frames);
+        println!("  1 thread   {single:7.1} frames/s");
+        println!("  {threads} threads  {all:7.1} frames/s");
     }
     Ok(())
 }

@@ -10,6 +10,7 @@
 use std::path::{Path, PathBuf};
 
 pub mod recording;
+pub mod synthetic;
 
 pub use recording::{FrameEntry, FrameInfo, Recording, RecordingError};
 
