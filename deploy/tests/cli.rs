@@ -368,3 +368,38 @@ fn synthetic_scene_evaluates() {
     check_eval_report(&report);
     assert_eq!(report["seed"].as_u64(), Some(5));
 }
+
+/// `handflow render` writes a recording that ingest opens, with truth and masks.
+#[test]
+fn render_writes_a_recording_with_truth() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("rec");
+    let scene = tmp.path().join("scene.toml");
+    // A small scene file: the preset's layout, smaller and shorter.
+    let mut spec = handflow_ingest::synthetic::SceneSpec::preset("hands-cross").unwrap();
+    spec.width = 96;
+    spec.height = 72;
+    spec.frames = 3;
+    std::fs::write(&scene, toml::to_string(&spec).unwrap()).unwrap();
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_handflow"))
+        .args(["render", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let rec = handflow_ingest::Recording::open(&out).unwrap();
+    assert_eq!(rec.len(), 3);
+    assert!(rec.truth_path().is_some());
+    assert!(out.join("masks/cam0/000002.png").is_file());
+
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_handflow"))
+        .args(["render", "--preset", "ballet", "--out"])
+        .arg(tmp.path().join("x"))
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("ballet") && stderr.contains("signer-3cam") && !stderr.contains("panicked"), "{stderr}");
+}
