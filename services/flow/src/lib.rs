@@ -13,11 +13,13 @@
 pub mod camera;
 pub mod config;
 mod engine;
+pub mod faces;
 pub mod image;
 pub mod likelihood;
 pub mod particles;
 pub mod refine;
 pub mod rng;
+pub mod skin;
 
 pub use config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
 pub use engine::{DenseField, FlowError, FrameStats, SceneFlowEngine};
