@@ -171,7 +171,8 @@ impl SkinModel {
     }
 
     /// Adapts to one camera image (RGB8) given the faces detected in it: central-face
-    /// colours blend into the skin distribution, all other pixels into the background one,
+    /// colours blend into the skin distribution, all pixels outside the faces into the
+    /// background one (the paper's rule),
     /// each with weight `adaptation_rate`. Alpha becomes the median unclamped log ratio of
     /// the central-face pixels: half of a face's skin saturates the term, so one very
     /// skin-like colour cannot outweigh several views (equation 4 sums over views). Returns

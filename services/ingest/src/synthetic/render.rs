@@ -20,6 +20,8 @@ pub mod ids {
     pub const TORSO: u8 = 4;
     /// Arms.
     pub const ARMS: u8 = 5;
+    /// The hair on the head (part of the head for visibility, not skin-coloured).
+    pub const HAIR: u8 = 6;
 }
 
 /// The face photograph mapped on the front of the head (see assets/ATTRIBUTION.md).
@@ -161,7 +163,10 @@ impl Renderer {
                             && y >= 0.0
                             && (x as usize) < w
                             && (y as usize) < h
-                            && masks[c * w * h + y as usize * w + x as usize] == id
+                            && {
+                                let seen = masks[c * w * h + y as usize * w + x as usize];
+                                seen == id || (id == ids::HEAD && seen == ids::HAIR)
+                            }
                     });
                     visible.push(seen);
                 }
@@ -234,7 +239,8 @@ impl Renderer {
                 let p = add(origin, scale(dir, t));
                 let n = normal(&object.shape, p);
                 let shade = 0.45 + 0.55 * dot(n, light).max(0.0);
-                (object.id, scale(self.albedo(object, p, n), shade))
+                let (id, colour) = self.albedo(object, p, n);
+                (id, scale(colour, shade))
             }
             None => {
                 // The wall behind the signer; rays that never reach it see a dim grey.
@@ -249,7 +255,7 @@ impl Renderer {
     }
 
     /// Surface colour: face photograph on the front of the head, textured skin, cloth.
-    fn albedo(&self, object: &Object, p: V3, n: V3) -> [f64; 3] {
+    fn albedo(&self, object: &Object, p: V3, n: V3) -> (u8, [f64; 3]) {
         let local = sub(p, object.anchor);
         let skin = self.spec.skin_tone;
         let grain =
@@ -259,27 +265,27 @@ impl Renderer {
                 if let Shape::Ellipsoid { radii, .. } = object.shape {
                     if n[2] > 0.15 {
                         // Orthographic along the face's normal (+Z) over the front of the head.
-                        let u = 0.5 + local[0] / (2.0 * radii[0] * 0.85);
-                        let v = 0.5 - (local[1] - 0.01) / (2.0 * radii[1] * 0.95);
+                        let u = 0.5 + local[0] / (2.0 * radii[0] * 0.75);
+                        let v = 0.5 - (local[1] + 0.005) / (2.0 * radii[1] * 0.78);
                         if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
-                            return self.face_texel(u, v);
+                            return (ids::HEAD, self.face_texel(u, v));
                         }
                     }
                 }
-                if n[1] > 0.35 || n[2] < -0.2 {
+                if n[1] > 0.35 || n[2] < -0.2 || local[1] > 0.045 {
                     let g = 0.8 + 0.4 * grain(0.01, 11);
-                    return [120.0 * g, 85.0 * g, 50.0 * g]; // hair
+                    return (ids::HAIR, [95.0 * g, 65.0 * g, 40.0 * g]);
                 }
-                skin.map(|c| c * (0.9 + 0.2 * grain(0.008, 5)))
+                (ids::HEAD, skin.map(|c| c * (0.9 + 0.2 * grain(0.008, 5))))
             }
             ids::LEFT_HAND | ids::RIGHT_HAND => {
                 let g = 0.82 + 0.36 * grain(0.006, u64::from(object.id));
-                skin.map(|c| c * g)
+                (object.id, skin.map(|c| c * g))
             }
             _ => {
                 let stripes = 0.85 + 0.15 * ((local[1] / 0.03).sin() * (local[0] / 0.05).cos());
                 let g = stripes * (0.8 + 0.4 * grain(0.015, 21));
-                self.spec.clothing.map(|c| c * g)
+                (object.id, self.spec.clothing.map(|c| c * g))
             }
         }
     }
@@ -404,7 +410,9 @@ fn wall(p: V3, seed: u64) -> [f64; 3] {
     let a = value_noise_2d(p[0] / 0.09, p[1] / 0.09, seed ^ 1);
     let b = value_noise_2d(p[0] / 0.09, p[1] / 0.09, seed ^ 3);
     let c = value_noise_2d(p[0] / 0.025, p[1] / 0.025, seed ^ 5);
-    [40.0 + 150.0 * a + 60.0 * c, 40.0 + 140.0 * b + 60.0 * (1.0 - c), 40.0 + 130.0 * (1.0 - a) + 60.0 * c]
+    // An office-like palette of greys, greens and blues: richly textured, but not
+    // skin-coloured (a wall of skin tones would defeat any colour-based method).
+    [30.0 + 70.0 * a + 40.0 * c, 50.0 + 110.0 * b + 50.0 * c, 70.0 + 120.0 * (1.0 - a) + 40.0 * c]
 }
 
 /// Smooth 2D value noise in [0, 1] on a unit lattice.

@@ -42,8 +42,10 @@ pub struct SceneSpec {
 fn default_noise() -> f64 {
     2.0
 }
+/// The skin of the face photograph (its cheeks and forehead average about (212, 180, 155)):
+/// a person's hands share their face's tone.
 fn default_skin() -> [f64; 3] {
-    [224.0, 172.0, 140.0]
+    [212.0, 178.0, 152.0]
 }
 fn default_clothing() -> [f64; 3] {
     [40.0, 60.0, 110.0]

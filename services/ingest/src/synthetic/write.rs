@@ -88,6 +88,7 @@ pub fn write_recording(renderer: &Renderer, out: &Path, frames: u32) -> Result<(
             ("right_hand", ids::RIGHT_HAND),
             ("torso", ids::TORSO),
             ("arms", ids::ARMS),
+            ("hair", ids::HAIR),
         ]
         .into_iter()
         .collect(),
