@@ -58,6 +58,18 @@ struct RenderArgs {
 enum EvalCommand {
     /// Scene flow on a Middlebury multi-baseline scene (EVALUATION.md section 1).
     Middlebury(MiddleburyArgs),
+    /// Skin decision against a recording's object masks, generic prior and adapted model.
+    Skin(SkinArgs),
+}
+
+#[derive(Args, Debug)]
+struct SkinArgs {
+    /// Recording folder with masks (as `handflow render` writes).
+    #[arg(long)]
+    recording: PathBuf,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Subcommand, Debug)]
@@ -184,6 +196,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         None => demo(),
         Some(Command::Eval(EvalCommand::Middlebury(args))) => eval_middlebury(&args),
+        Some(Command::Eval(EvalCommand::Skin(args))) => eval_skin(&args),
         Some(Command::Bench(BenchCommand::Flow(args))) => bench_flow(&args),
         Some(Command::Bench(BenchCommand::Accuracy(args))) => bench_accuracy(&args),
         Some(Command::Bench(BenchCommand::Render(args))) => bench_render(&args),
@@ -458,6 +471,23 @@ fn bench_render(args: &BenchRenderArgs) -> Result<()> {
         println!("render {}: {views} cameras, {}x{}, {} frames", args.preset, spec.width, spec.height, args.frames);
         println!("  1 thread   {single:7.1} frames/s");
         println!("  {threads} threads  {all:7.1} frames/s");
+    }
+    Ok(())
+}
+
+fn eval_skin(args: &SkinArgs) -> Result<()> {
+    let s = crate::skin_eval::evaluate_skin(&args.recording)?;
+    if args.json {
+        println!("{}", serde_json::to_string(&s)?);
+    } else {
+        println!(
+            "skin decision on `{}` ({} frames scored, {} face detections used)",
+            args.recording.display(),
+            s.frames_scored,
+            s.face_detections
+        );
+        println!("  adapted   precision {:.3}  recall {:.3}", s.precision, s.recall);
+        println!("  generic   precision {:.3}  recall {:.3}", s.precision_generic, s.recall_generic);
     }
     Ok(())
 }

@@ -7,3 +7,4 @@
 pub mod cli;
 pub mod flow_eval;
 pub mod middlebury;
+pub mod skin_eval;

@@ -403,3 +403,28 @@ fn render_writes_a_recording_with_truth() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("ballet") && stderr.contains("signer-3cam") && !stderr.contains("panicked"), "{stderr}");
 }
+
+/// `handflow eval skin` scores a rendered recording and prints the documented JSON keys;
+/// a recording without masks is refused naming the mask file.
+#[test]
+fn eval_skin_scores_a_rendered_recording() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("rec");
+    let run = |args: &[&str]| std::process::Command::new(env!("CARGO_BIN_EXE_handflow")).args(args).output().unwrap();
+    let out_s = out.to_str().unwrap();
+    let r = run(&["render", "--preset", "signer-3cam", "--frames", "4", "--out", out_s]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let r = run(&["eval", "skin", "--recording", out_s, "--json"]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+    for key in ["precision", "recall", "precision_generic", "recall_generic"] {
+        let x = v[key].as_f64().unwrap_or(-1.0);
+        assert!((0.0..=1.0).contains(&x), "{key} = {x}");
+    }
+    assert!(v["face_detections"].as_u64().unwrap_or(0) >= 1, "the face is found: {v}");
+    std::fs::remove_file(out.join("masks/cam2/000003.png")).unwrap();
+    let r = run(&["eval", "skin", "--recording", out_s]);
+    assert!(!r.status.success());
+    let stderr = String::from_utf8_lossy(&r.stderr);
+    assert!(stderr.contains("cam2") && stderr.contains("000003.png") && !stderr.contains("panicked"), "{stderr}");
+}

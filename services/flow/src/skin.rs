@@ -113,12 +113,17 @@ impl ColourHistogram {
 pub struct SkinModel {
     skin: ColourHistogram,
     background: ColourHistogram,
+    generic_skin: ColourHistogram,
+    generic_background: ColourHistogram,
     alpha: f32,
     adaptation_rate: f32,
     /// `min(log10(Ps / Pbg), alpha)` per bin, refreshed after every adaptation.
     log_ratio: Vec<f32>,
     adaptations: u32,
 }
+
+/// Share of the generic prior that adaptation never replaces.
+pub const GENERIC_SHARE: f32 = 0.25;
 
 /// Probability floor (per bin) so that unseen colours have a finite log ratio.
 const FLOOR: f32 = 1e-7;
@@ -128,9 +133,13 @@ impl SkinModel {
     /// skin colour ten times likelier under the skin model counts fully), as the note on
     /// skin priors measured on a real face; adaptation re-estimates it.
     pub fn generic(adaptation_rate: f32) -> Self {
+        let generic_skin = ColourHistogram::from_mixture(&JONES_REHG_SKIN);
+        let generic_background = ColourHistogram::from_mixture(&JONES_REHG_NON_SKIN);
         let mut model = Self {
-            skin: ColourHistogram::from_mixture(&JONES_REHG_SKIN),
-            background: ColourHistogram::from_mixture(&JONES_REHG_NON_SKIN),
+            skin: generic_skin.clone(),
+            background: generic_background.clone(),
+            generic_skin,
+            generic_background,
             alpha: 1.0,
             adaptation_rate: adaptation_rate.clamp(0.0, 1.0),
             log_ratio: Vec::new(),
@@ -161,8 +170,14 @@ impl SkinModel {
         self.log_ratio(rgb) > 0.0
     }
 
+    /// The log ratio of the distributions used: the adapted ones with a fixed share of the
+    /// generic prior kept, so colours a face never shows (a hand in shadow, seen from the
+    /// side) keep the prior's opinion instead of decaying to nothing.
     fn unclamped(&self, b: usize) -> f32 {
-        ((self.skin.p[b] + FLOOR) / (self.background.p[b] + FLOOR)).log10()
+        let g = GENERIC_SHARE;
+        let skin = (1.0 - g) * self.skin.p[b] + g * self.generic_skin.p[b];
+        let background = (1.0 - g) * self.background.p[b] + g * self.generic_background.p[b];
+        ((skin + FLOOR) / (background + FLOOR)).log10()
     }
 
     fn refresh(&mut self) {

@@ -159,14 +159,10 @@ impl Renderer {
                     pixel.push(p.map(|p| [p.x, p.y]));
                     let seen = p.is_some_and(|p| {
                         let (x, y) = (p.x.round(), p.y.round());
-                        x >= 0.0
-                            && y >= 0.0
-                            && (x as usize) < w
-                            && (y as usize) < h
-                            && {
-                                let seen = masks[c * w * h + y as usize * w + x as usize];
-                                seen == id || (id == ids::HEAD && seen == ids::HAIR)
-                            }
+                        x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h && {
+                            let seen = masks[c * w * h + y as usize * w + x as usize];
+                            seen == id || (id == ids::HEAD && seen == ids::HAIR)
+                        }
                     });
                     visible.push(seen);
                 }
