@@ -488,6 +488,12 @@ fn eval_skin(args: &SkinArgs) -> Result<()> {
         );
         println!("  adapted   precision {:.3}  recall {:.3}", s.precision, s.recall);
         println!("  generic   precision {:.3}  recall {:.3}", s.precision_generic, s.recall_generic);
+        for c in &s.cameras {
+            println!(
+                "  camera {:<10} precision {:.3}  recall {:.3}  ({} face detections)",
+                c.camera, c.precision, c.recall, c.face_detections
+            );
+        }
     }
     Ok(())
 }

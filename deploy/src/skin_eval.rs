@@ -18,7 +18,7 @@ pub const DETECT_EVERY: usize = 5;
 pub const SCORE_EVERY: usize = 3;
 
 /// The scores of one run.
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
 pub struct SkinScores {
     /// Adapted model: share of pixels called skin that are skin.
     pub precision: f64,
@@ -32,6 +32,21 @@ pub struct SkinScores {
     pub face_detections: usize,
     /// Frames scored (per camera).
     pub frames_scored: usize,
+    /// Per camera (rig order): adapted precision and recall.
+    pub cameras: Vec<CameraScores>,
+}
+
+/// One camera's scores.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct CameraScores {
+    /// Camera name.
+    pub camera: String,
+    /// Adapted model: precision.
+    pub precision: f64,
+    /// Adapted model: recall.
+    pub recall: f64,
+    /// Face detections used to adapt this camera's model.
+    pub face_detections: usize,
 }
 
 #[derive(Default)]
@@ -80,7 +95,8 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
     let mut models: Vec<SkinModel> = cameras.iter().map(|_| SkinModel::generic(ADAPTATION_RATE)).collect();
     let generic = SkinModel::generic(ADAPTATION_RATE);
     let mut detector = FaceDetector::new().map_err(anyhow::Error::msg)?;
-    let mut detections = 0;
+    let mut detections = vec![0usize; cameras.len()];
+    let mut per_camera: Vec<Counts> = cameras.iter().map(|_| Counts::default()).collect();
     let (mut adapted, mut prior) = (Counts::default(), Counts::default());
     let mut scored = 0;
     for (k, entry) in rec.frames().iter().enumerate() {
@@ -98,7 +114,7 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
             if detect {
                 let faces = detector.detect(view, cam.width, cam.height);
                 if models[c].adapt(view, cam.width, cam.height, &faces) {
-                    detections += 1;
+                    detections[c] += 1;
                 }
             }
             if score {
@@ -126,6 +142,7 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
                     let rgb = [px[0], px[1], px[2]];
                     let truth = skin.contains(m);
                     adapted.add(models[c].is_skin(rgb), truth);
+                    per_camera[c].add(models[c].is_skin(rgb), truth);
                     prior.add(generic.is_skin(rgb), truth);
                 }
             }
@@ -139,7 +156,18 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
         recall: adapted.recall(),
         precision_generic: prior.precision(),
         recall_generic: prior.recall(),
-        face_detections: detections,
+        face_detections: detections.iter().sum(),
         frames_scored: scored,
+        cameras: cameras
+            .iter()
+            .zip(&per_camera)
+            .zip(&detections)
+            .map(|((cam, counts), &d)| CameraScores {
+                camera: cam.name.clone(),
+                precision: counts.precision(),
+                recall: counts.recall(),
+                face_detections: d,
+            })
+            .collect(),
     })
 }
