@@ -381,27 +381,15 @@ fn render_writes_a_recording_with_truth() {
     spec.height = 72;
     spec.frames = 3;
     std::fs::write(&scene, toml::to_string(&spec).unwrap()).unwrap();
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_handflow"))
-        .args(["render", "--scene"])
-        .arg(&scene)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let output = handflow(&["render", "--scene", arg(&scene), "--out", arg(&out)]);
+    assert!(output.status.success(), "{}", describe(&output));
     let rec = handflow_ingest::Recording::open(&out).unwrap();
     assert_eq!(rec.len(), 3);
     assert!(rec.truth_path().is_some());
     assert!(out.join("masks/cam0/000002.png").is_file());
 
-    let output = std::process::Command::new(env!("CARGO_BIN_EXE_handflow"))
-        .args(["render", "--preset", "ballet", "--out"])
-        .arg(tmp.path().join("x"))
-        .output()
-        .unwrap();
-    assert!(!output.status.success());
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(stderr.contains("ballet") && stderr.contains("signer-3cam") && !stderr.contains("panicked"), "{stderr}");
+    let output = handflow(&["render", "--preset", "ballet", "--out", arg(&tmp.path().join("x"))]);
+    check_failure(&output, &["ballet", "signer-3cam"]);
 }
 
 /// `handflow eval skin` scores a rendered recording and prints the documented JSON keys;
@@ -410,12 +398,10 @@ fn render_writes_a_recording_with_truth() {
 fn eval_skin_scores_a_rendered_recording() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("rec");
-    let run = |args: &[&str]| std::process::Command::new(env!("CARGO_BIN_EXE_handflow")).args(args).output().unwrap();
-    let out_s = out.to_str().unwrap();
-    let r = run(&["render", "--preset", "signer-3cam", "--frames", "4", "--out", out_s]);
-    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-    let r = run(&["eval", "skin", "--recording", out_s, "--json"]);
-    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let r = handflow(&["render", "--preset", "signer-3cam", "--frames", "4", "--out", arg(&out)]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let r = handflow(&["eval", "skin", "--recording", arg(&out), "--json"]);
+    assert!(r.status.success(), "{}", describe(&r));
     let v: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
     for key in ["precision", "recall", "precision_generic", "recall_generic"] {
         let x = v[key].as_f64().unwrap_or(-1.0);
@@ -423,8 +409,5 @@ fn eval_skin_scores_a_rendered_recording() {
     }
     assert!(v["face_detections"].as_u64().unwrap_or(0) >= 1, "the face is found: {v}");
     std::fs::remove_file(out.join("masks/cam2/000003.png")).unwrap();
-    let r = run(&["eval", "skin", "--recording", out_s]);
-    assert!(!r.status.success());
-    let stderr = String::from_utf8_lossy(&r.stderr);
-    assert!(stderr.contains("cam2") && stderr.contains("000003.png") && !stderr.contains("panicked"), "{stderr}");
+    check_failure(&handflow(&["eval", "skin", "--recording", arg(&out)]), &["cam2", "000003.png"]);
 }
