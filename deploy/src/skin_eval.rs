@@ -141,8 +141,9 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
                 for (px, m) in view.chunks_exact(3).zip(mask.as_raw()) {
                     let rgb = [px[0], px[1], px[2]];
                     let truth = skin.contains(m);
-                    adapted.add(models[c].is_skin(rgb), truth);
-                    per_camera[c].add(models[c].is_skin(rgb), truth);
+                    let said = models[c].is_skin(rgb);
+                    adapted.add(said, truth);
+                    per_camera[c].add(said, truth);
                     prior.add(generic.is_skin(rgb), truth);
                 }
             }
