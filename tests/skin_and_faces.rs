@@ -1,8 +1,8 @@
 //! The face detector and the adaptive skin model on rendered signer scenes: the detector
 //! finds the synthetic face, and adapting to it makes the skin decision separate head and
 //! hands from everything else better than the generic prior, more so with more frames.
-//! (The target of 0.9 precision and recall is not reached yet: see the README.)
 
+use handflow_flow::face_fusion::fuse_faces;
 use handflow_flow::faces::FaceDetector;
 use handflow_flow::skin::SkinModel;
 use handflow_ingest::synthetic::{ids, Renderer, SceneSpec};
@@ -28,54 +28,54 @@ fn score(model: &SkinModel, rgb: &[u8], mask: &[u8]) -> Scores {
 }
 
 #[test]
-fn the_detector_finds_the_rendered_face_and_adaptation_beats_the_generic_prior() {
+fn faces_found_in_frontal_views_and_lent_to_the_others_make_the_skin_decision_precise() {
     let spec = SceneSpec::preset("signer-3cam").expect("preset");
     let renderer = Renderer::new(&spec).expect("renderer");
-    let views = spec.cameras.angles_deg.len();
+    let cameras = &renderer.rig().cameras;
+    let views = cameras.len();
     let view = renderer.view_len();
     let pixels = view / 3;
     let mut rgb = vec![0u8; view * views];
     let mut masks = vec![0u8; pixels * views];
-    renderer.render_into(0, &mut rgb, &mut masks);
-    let truth = renderer.truth(0, &masks);
-    let head_pixel = truth[0].1.pixel[1].expect("head projects into the front camera");
-    let front = &rgb[view..2 * view];
     let mut detector = FaceDetector::new().expect("model loads");
-    let faces = detector.detect(front, spec.width, spec.height);
-    eprintln!("faces in the front camera: {faces:?}");
-    let face = faces
-        .iter()
-        .find(|f| f.contains(head_pixel[0] as f32, head_pixel[1] as f32))
-        .expect("the front camera's face is found around the head's projection");
     let generic = SkinModel::generic(0.3);
-    let mut adapted = generic.clone();
-    assert!(adapted.adapt(front, spec.width, spec.height, &[*face]));
-    let mut many = adapted.clone();
-    for frame in 1..10 {
-        renderer.render_into(frame * 5, &mut rgb, &mut masks);
-        let front = &rgb[view..2 * view];
-        let faces = detector.detect(front, spec.width, spec.height);
-        many.adapt(front, spec.width, spec.height, &faces);
+    let mut models = vec![generic.clone(); views];
+    let mut detected = vec![0; views];
+    let mut lent = vec![0; views];
+    for frame in (0..40).step_by(5) {
+        renderer.render_into(frame, &mut rgb, &mut masks);
+        let truth = renderer.truth(frame, &masks);
+        let found: Vec<_> =
+            (0..views).map(|c| detector.detect(&rgb[c * view..(c + 1) * view], spec.width, spec.height)).collect();
+        // The frontal cameras (-35 and 0 degrees) find the face around the head's projection.
+        for c in 0..2 {
+            let head = truth[0].1.pixel[c].expect("head projects");
+            let hit = found[c].iter().any(|f| f.contains(head[0] as f32, head[1] as f32 + 10.0));
+            detected[c] += usize::from(hit);
+        }
+        let fused = fuse_faces(cameras, &found);
+        for c in 0..views {
+            let faces: Vec<_> = fused.boxes[c].into_iter().collect();
+            models[c].adapt(&rgb[c * view..(c + 1) * view], spec.width, spec.height, &faces);
+            lent[c] += usize::from(fused.transferred[c]);
+        }
     }
-    renderer.render_into(0, &mut rgb, &mut masks);
-    let front = &rgb[view..2 * view];
-    let mask = &masks[pixels..2 * pixels];
-    let m = score(&many, front, mask);
-    eprintln!(
-        "after {} adaptations: precision {:.3} recall {:.3} alpha {:.2}",
-        many.adaptations(),
-        m.precision,
-        m.recall,
-        many.alpha()
-    );
-    let g = score(&generic, front, mask);
-    let a = score(&adapted, front, mask);
-    eprintln!(
-        "generic precision {:.3} recall {:.3}; adapted precision {:.3} recall {:.3}",
-        g.precision, g.recall, a.precision, a.recall
-    );
-    assert!(a.precision > g.precision, "adaptation improves precision");
-    assert!(a.precision + a.recall > g.precision + g.recall, "and the decision overall");
-    assert!(m.precision > a.precision && m.recall > 0.7, "more frames keep improving it");
-    assert!(many.adaptations() >= 8, "the face is found in most frames: {}", many.adaptations());
+    eprintln!("frames with the face detected per camera: {detected:?}; lent: {lent:?}");
+    assert!(detected[0] >= 6 && detected[1] >= 7, "frontal cameras find the face: {detected:?}");
+    assert!(lent[2] >= 6, "the +35 degree camera is lent the face the others agree on: {lent:?}");
+    // Frames long after the last detection: the model keeps its adapted state.
+    for frame in [70, 100] {
+        renderer.render_into(frame, &mut rgb, &mut masks);
+        for c in 0..views {
+            let (colour, mask) = (&rgb[c * view..(c + 1) * view], &masks[c * pixels..(c + 1) * pixels]);
+            let a = score(&models[c], colour, mask);
+            let g = score(&generic, colour, mask);
+            eprintln!(
+                "frame {frame} camera {c}: adapted {:.3}/{:.3}, generic {:.3}/{:.3}",
+                a.precision, a.recall, g.precision, g.recall
+            );
+            assert!(a.precision > 0.85 && a.recall > 0.85, "camera {c}, frame {frame}");
+            assert!(a.precision + a.recall > g.precision + g.recall, "adaptation beats the prior");
+        }
+    }
 }

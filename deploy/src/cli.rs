@@ -46,12 +46,16 @@ struct RenderArgs {
     /// Built-in scene: signer-3cam (default), signer-2cam-narrow, hands-cross, occluded-side.
     #[arg(long)]
     preset: Option<String>,
-    /// Output folder (created).
+    /// Output folder (created; must not exist or be empty).
     #[arg(long)]
     out: PathBuf,
     /// Number of frames (default: the scene's).
     #[arg(long)]
     frames: Option<u32>,
+    /// Replace the recording already in `--out` (only a folder holding a recording's
+    /// `frames.csv` is removed).
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Subcommand, Debug)]
@@ -169,17 +173,31 @@ struct BenchAccuracyArgs {
     json: bool,
 }
 
+/// Writes a line to standard output, returning the error (a closed pipe, as with
+/// `handflow ... | head`, ends the command quietly instead of panicking like `println!`).
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout(), $($arg)*)?
+    }};
+}
+
 /// Entry point of the binary.
 pub fn main() -> ExitCode {
     init_logging();
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
+        Err(err) if is_broken_pipe(&err) => ExitCode::SUCCESS,
         Err(err) => {
             eprintln!("handflow: error: {err:#}");
             ExitCode::FAILURE
         }
     }
+}
+
+fn is_broken_pipe(err: &anyhow::Error) -> bool {
+    err.chain().any(|e| e.downcast_ref::<std::io::Error>().is_some_and(|e| e.kind() == std::io::ErrorKind::BrokenPipe))
 }
 
 fn init_logging() {
@@ -214,7 +232,7 @@ fn demo() -> Result<()> {
             scene.display()
         );
     }
-    println!("handflow demo: multi-view scene flow on `{}` (EVALUATION.md section 1)\n", scene.display());
+    out!("handflow demo: multi-view scene flow on `{}` (EVALUATION.md section 1)\n", scene.display());
     for layout in [Layout::Multiview, Layout::Fb] {
         let out = PathBuf::from("out").join(format!("middlebury-{layout}"));
         let args = MiddleburyArgs {
@@ -227,7 +245,7 @@ fn demo() -> Result<()> {
             out: Some(out),
         };
         eval_middlebury(&args)?;
-        println!();
+        out!();
     }
     Ok(())
 }
@@ -262,11 +280,11 @@ fn eval_middlebury(args: &MiddleburyArgs) -> Result<()> {
     };
     if args.json {
         let report = report_json(&scene.name, args.layout, &config, threads, &result);
-        println!("{report}");
+        out!("{report}");
     } else {
-        print_report(&scene.name, args.layout, &config, threads, &result);
+        print_report(&scene.name, args.layout, &config, threads, &result)?;
         if let Some(dir) = &args.out {
-            println!("maps written to {} ({} files)", dir.display(), written.len());
+            out!("maps written to {} ({} files)", dir.display(), written.len());
         }
     }
     Ok(())
@@ -297,19 +315,26 @@ fn report_json(
     })
 }
 
-fn print_report(scene: &str, layout: Layout, config: &handflow_flow::EngineConfig, threads: usize, r: &RunResult) {
+fn print_report(
+    scene: &str,
+    layout: Layout,
+    config: &handflow_flow::EngineConfig,
+    threads: usize,
+    r: &RunResult,
+) -> Result<()> {
     let seed = config.seed;
     let m = &r.metrics;
-    println!(
+    out!(
         "scene {scene}, layout {layout}, variant {}, {} particles/ray, seed {seed}, {threads} threads",
         config.variant.name(),
         config.particles_per_ray
     );
-    println!("  optical flow RMSE   {:8.3} px", m.of_rmse_px);
-    println!("  Z flow RMSE         {:8.4}", m.zflow_rmse);
-    println!("  structure RMSE      {:8.3} px", m.structure_rmse_px);
-    println!("  AAE                 {:8.2} deg", m.aae_deg);
-    println!("  time                {:8.3} s/frame ({} pixels with truth)", r.stats.seconds, m.pixels);
+    out!("  optical flow RMSE   {:8.3} px", m.of_rmse_px);
+    out!("  Z flow RMSE         {:8.4}", m.zflow_rmse);
+    out!("  structure RMSE      {:8.3} px", m.structure_rmse_px);
+    out!("  AAE                 {:8.2} deg", m.aae_deg);
+    out!("  time                {:8.3} s/frame ({} pixels with truth)", r.stats.seconds, m.pixels);
+    Ok(())
 }
 
 fn bench_flow(args: &BenchFlowArgs) -> Result<()> {
@@ -332,7 +357,7 @@ fn bench_flow(args: &BenchFlowArgs) -> Result<()> {
     let (all, evals, threads) = fastest(None)?;
     let eps = evals as f64 / all;
     if args.json {
-        println!(
+        out!(
             "{}",
             json!({
                 "scene": scene.name,
@@ -348,16 +373,16 @@ fn bench_flow(args: &BenchFlowArgs) -> Result<()> {
             })
         );
     } else {
-        println!(
+        out!(
             "scene {}, layout {}, variant {}, {} particles/ray, best of {repeats}",
             scene.name,
             args.layout,
             config.variant.name(),
             config.particles_per_ray
         );
-        println!("  1 thread     {single:8.3} s/frame");
-        println!("  {threads} threads    {all:8.3} s/frame  ({:.2}x)", single / all);
-        println!("  likelihood evaluations {evals} per frame, {:.2} M/s on {threads} threads", eps / 1e6);
+        out!("  1 thread     {single:8.3} s/frame");
+        out!("  {threads} threads    {all:8.3} s/frame  ({:.2}x)", single / all);
+        out!("  likelihood evaluations {evals} per frame, {:.2} M/s on {threads} threads", eps / 1e6);
     }
     Ok(())
 }
@@ -382,14 +407,14 @@ fn bench_accuracy(args: &BenchAccuracyArgs) -> Result<()> {
         let k = args.seeds as f64;
         let mean = sums.map(|s| s / k);
         if args.json {
-            println!(
+            out!(
                 "{}",
                 json!({"scene": scene.name, "layout": layout.to_string(), "variant": args.engine.variant.name(), "seeds": args.seeds, "particles_per_ray": args.engine.particles_per_ray.unwrap_or(handflow_flow::EngineConfig::default().particles_per_ray),
                     "overrides": args.engine.overrides,
                     "of_rmse_px": mean[0], "zflow_rmse": mean[1], "structure_rmse_px": mean[2], "aae_deg": mean[3], "seconds_per_frame": mean[4], "runs": per_seed})
             );
         } else {
-            println!(
+            out!(
                 "| {} | {layout} | {} | {:.3} | {:.4} | {:.3} | {:.2} | {:.2} |",
                 scene.name,
                 args.engine.variant.name(),
@@ -427,9 +452,10 @@ fn render(args: &RenderArgs) -> Result<()> {
         spec.frames = frames;
     }
     let renderer = Renderer::new(&spec).map_err(anyhow::Error::msg)?;
+    clear_output(&args.out, args.force)?;
     let started = std::time::Instant::now();
     write_recording(&renderer, &args.out, spec.frames)?;
-    println!(
+    out!(
         "rendered {} frames x {} cameras ({}x{}) into {} in {:.1} s (images, masks/, truth.json)",
         spec.frames,
         spec.cameras.angles_deg.len(),
@@ -439,6 +465,25 @@ fn render(args: &RenderArgs) -> Result<()> {
         started.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// Makes sure a render does not mix its frames with an earlier recording's.
+fn clear_output(out: &Path, force: bool) -> Result<()> {
+    let Ok(mut entries) = std::fs::read_dir(out) else { return Ok(()) };
+    if entries.next().is_none() {
+        return Ok(());
+    }
+    anyhow::ensure!(
+        force,
+        "`{}` is not empty; choose a new folder or pass --force to replace the recording in it",
+        out.display()
+    );
+    anyhow::ensure!(
+        out.join("frames.csv").is_file(),
+        "`{}` holds no recording (no frames.csv); refusing to delete it with --force",
+        out.display()
+    );
+    std::fs::remove_dir_all(out).with_context(|| format!("removing the old recording `{}`", out.display()))
 }
 
 fn bench_render(args: &BenchRenderArgs) -> Result<()> {
@@ -462,15 +507,15 @@ fn bench_render(args: &BenchRenderArgs) -> Result<()> {
     let (single, _) = measure(Some(1))?;
     let (all, threads) = measure(None)?;
     if args.json {
-        println!(
+        out!(
             "{}",
             json!({"preset": args.preset, "cameras": views, "width": spec.width, "height": spec.height,
                 "frames_per_second_1_thread": single, "frames_per_second": all, "threads": threads})
         );
     } else {
-        println!("render {}: {views} cameras, {}x{}, {} frames", args.preset, spec.width, spec.height, args.frames);
-        println!("  1 thread   {single:7.1} frames/s");
-        println!("  {threads} threads  {all:7.1} frames/s");
+        out!("render {}: {views} cameras, {}x{}, {} frames", args.preset, spec.width, spec.height, args.frames);
+        out!("  1 thread   {single:7.1} frames/s");
+        out!("  {threads} threads  {all:7.1} frames/s");
     }
     Ok(())
 }
@@ -478,21 +523,29 @@ fn bench_render(args: &BenchRenderArgs) -> Result<()> {
 fn eval_skin(args: &SkinArgs) -> Result<()> {
     let s = crate::skin_eval::evaluate_skin(&args.recording)?;
     if args.json {
-        println!("{}", serde_json::to_string(&s)?);
+        out!("{}", serde_json::to_string(&s)?);
     } else {
-        println!(
-            "skin decision on `{}` ({} frames scored, {} face detections used)",
+        out!(
+            "skin decision on `{}` ({} frames scored, {} face detections used, {} rejected by the other views)",
             args.recording.display(),
             s.frames_scored,
-            s.face_detections
+            s.face_detections,
+            s.faces_rejected
         );
-        println!("  adapted   precision {:.3}  recall {:.3}", s.precision, s.recall);
-        println!("  generic   precision {:.3}  recall {:.3}", s.precision_generic, s.recall_generic);
+        out!("  adapted   precision {:.3}  recall {:.3}", s.precision, s.recall);
+        out!("  generic   precision {:.3}  recall {:.3}", s.precision_generic, s.recall_generic);
         for c in &s.cameras {
-            println!(
-                "  camera {:<10} precision {:.3}  recall {:.3}  ({} face detections)",
-                c.camera, c.precision, c.recall, c.face_detections
+            out!(
+                "  camera {:<10} precision {:.3}  recall {:.3}  ({} faces detected, {} lent by other views)",
+                c.camera,
+                c.precision,
+                c.recall,
+                c.face_detections,
+                c.faces_transferred
             );
+        }
+        for o in &s.objects {
+            out!("  object {:<10} recall {:.3}  ({} pixels)", o.object, o.recall, o.pixels);
         }
     }
     Ok(())

@@ -5,10 +5,12 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
+use handflow_flow::face_fusion::fuse_faces;
 use handflow_flow::faces::FaceDetector;
 use handflow_flow::skin::SkinModel;
 use handflow_ingest::synthetic::MASKS_DIR;
 use handflow_ingest::Recording;
+use handflow_protocol::Camera;
 
 /// Adaptation rate of the skin model per face detection.
 pub const ADAPTATION_RATE: f32 = 0.3;
@@ -30,10 +32,25 @@ pub struct SkinScores {
     pub recall_generic: f64,
     /// Face detections used to adapt, over all cameras.
     pub face_detections: usize,
+    /// Detections dropped because no other view agreed with them.
+    pub faces_rejected: usize,
     /// Frames scored (per camera).
     pub frames_scored: usize,
     /// Per camera (rig order): adapted precision and recall.
     pub cameras: Vec<CameraScores>,
+    /// Per skin-coloured object (`head`, `left_hand`, `right_hand`): adapted recall.
+    pub objects: Vec<ObjectRecall>,
+}
+
+/// The share of one object's pixels the adapted model calls skin.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct ObjectRecall {
+    /// Object name.
+    pub object: String,
+    /// Adapted model: recall on this object's pixels.
+    pub recall: f64,
+    /// Pixels of this object scored.
+    pub pixels: u64,
 }
 
 /// One camera's scores.
@@ -45,8 +62,10 @@ pub struct CameraScores {
     pub precision: f64,
     /// Adapted model: recall.
     pub recall: f64,
-    /// Face detections used to adapt this camera's model.
+    /// Face detections (confirmed by another view) used to adapt this camera's model.
     pub face_detections: usize,
+    /// Faces lent by the other views (their detector missed) used to adapt this model.
+    pub faces_transferred: usize,
 }
 
 #[derive(Default)]
@@ -73,17 +92,23 @@ impl Counts {
     }
 }
 
-/// Mask ids of the skin-coloured objects: `head`, `left_hand`, `right_hand` from
+const SKIN_OBJECTS: [&str; 3] = ["head", "left_hand", "right_hand"];
+
+/// Mask ids of the skin-coloured objects (`head`, `left_hand`, `right_hand`) from
 /// `truth.json`'s `mask_ids` when it has them, else the renderer's 1, 2, 3.
-fn skin_ids(rec: &Recording) -> Result<Vec<u8>> {
-    let Some(path) = rec.truth_path() else { return Ok(vec![1, 2, 3]) };
+fn skin_ids(rec: &Recording) -> Result<[u8; 3]> {
+    let renderer = [1, 2, 3];
+    let Some(path) = rec.truth_path() else { return Ok(renderer) };
     let text = std::fs::read_to_string(path).with_context(|| format!("reading `{}`", path.display()))?;
     let truth: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("`{}`", path.display()))?;
-    let ids = ["head", "left_hand", "right_hand"]
-        .iter()
-        .filter_map(|k| truth["mask_ids"][k].as_u64().and_then(|v| u8::try_from(v).ok()))
-        .collect::<Vec<_>>();
-    Ok(if ids.is_empty() { vec![1, 2, 3] } else { ids })
+    let mut ids = renderer;
+    for (id, key) in ids.iter_mut().zip(SKIN_OBJECTS) {
+        if let Some(v) = truth["mask_ids"][key].as_u64() {
+            *id =
+                u8::try_from(v).with_context(|| format!("`{}`: mask_ids.{key} = {v} is not a byte", path.display()))?;
+        }
+    }
+    Ok(ids)
 }
 
 /// Runs the evaluation on a recording with masks (`masks/<camera>/<frame>.png`).
@@ -96,9 +121,12 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
     let generic = SkinModel::generic(ADAPTATION_RATE);
     let mut detector = FaceDetector::new().map_err(anyhow::Error::msg)?;
     let mut detections = vec![0usize; cameras.len()];
+    let mut transferred = vec![0usize; cameras.len()];
+    let mut rejected = 0;
     let mut per_camera: Vec<Counts> = cameras.iter().map(|_| Counts::default()).collect();
     let (mut adapted, mut prior) = (Counts::default(), Counts::default());
     let mut scored = 0;
+    let mut object_counts = [(0u64, 0u64); 3];
     for (k, entry) in rec.frames().iter().enumerate() {
         let detect = k % DETECT_EVERY == 0;
         let score = k % SCORE_EVERY == 0;
@@ -106,17 +134,24 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
             continue;
         }
         rec.read_frame_into(k as u64, false, &mut buf)?;
-        let mut offset = 0;
-        for (c, cam) in cameras.iter().enumerate() {
-            let len = cam.width as usize * cam.height as usize * 3;
-            let view = &buf[offset..offset + len];
-            offset += len;
-            if detect {
-                let faces = detector.detect(view, cam.width, cam.height);
-                if models[c].adapt(view, cam.width, cam.height, &faces) {
-                    detections[c] += 1;
+        let views: Vec<&[u8]> = split_views(&buf, cameras);
+        if detect {
+            let found: Vec<_> = views.iter().zip(cameras).map(|(v, c)| detector.detect(v, c.width, c.height)).collect();
+            let fused = fuse_faces(cameras, &found);
+            rejected += fused.rejected;
+            for (c, cam) in cameras.iter().enumerate() {
+                let faces: Vec<_> = fused.boxes[c].into_iter().collect();
+                if models[c].adapt(views[c], cam.width, cam.height, &faces) {
+                    if fused.transferred[c] {
+                        transferred[c] += 1;
+                    } else {
+                        detections[c] += 1;
+                    }
                 }
             }
+        }
+        for (c, cam) in cameras.iter().enumerate() {
+            let view = views[c];
             if score {
                 let mask_path = dir
                     .join(MASKS_DIR)
@@ -140,8 +175,13 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
                 );
                 for (px, m) in view.chunks_exact(3).zip(mask.as_raw()) {
                     let rgb = [px[0], px[1], px[2]];
-                    let truth = skin.contains(m);
+                    let object = skin.iter().position(|id| id == m);
+                    let truth = object.is_some();
                     let said = models[c].is_skin(rgb);
+                    if let Some(o) = object {
+                        object_counts[o].0 += u64::from(said);
+                        object_counts[o].1 += 1;
+                    }
                     adapted.add(said, truth);
                     per_camera[c].add(said, truth);
                     prior.add(generic.is_skin(rgb), truth);
@@ -158,17 +198,42 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
         precision_generic: prior.precision(),
         recall_generic: prior.recall(),
         face_detections: detections.iter().sum(),
+        faces_rejected: rejected,
         frames_scored: scored,
         cameras: cameras
             .iter()
             .zip(&per_camera)
-            .zip(&detections)
-            .map(|((cam, counts), &d)| CameraScores {
+            .zip(detections.iter().zip(&transferred))
+            .map(|((cam, counts), (&d, &t))| CameraScores {
                 camera: cam.name.clone(),
                 precision: counts.precision(),
                 recall: counts.recall(),
                 face_detections: d,
+                faces_transferred: t,
+            })
+            .collect(),
+        objects: SKIN_OBJECTS
+            .iter()
+            .zip(object_counts)
+            .map(|(name, (hit, total))| ObjectRecall {
+                object: (*name).to_owned(),
+                recall: hit as f64 / total.max(1) as f64,
+                pixels: total,
             })
             .collect(),
     })
+}
+
+/// The views of a frame set buffer, in rig order.
+fn split_views<'a>(buf: &'a [u8], cameras: &[Camera]) -> Vec<&'a [u8]> {
+    let mut offset = 0;
+    cameras
+        .iter()
+        .map(|cam| {
+            let len = cam.width as usize * cam.height as usize * 3;
+            let view = &buf[offset..offset + len];
+            offset += len;
+            view
+        })
+        .collect()
 }

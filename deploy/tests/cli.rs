@@ -388,6 +388,21 @@ fn render_writes_a_recording_with_truth() {
     assert!(rec.truth_path().is_some());
     assert!(out.join("masks/cam0/000002.png").is_file());
 
+    // A second render into the same folder must not mix with the first.
+    let output = handflow(&["render", "--scene", arg(&scene), "--out", arg(&out), "--frames", "2"]);
+    check_failure(&output, &["not empty", "--force"]);
+    let output = handflow(&["render", "--scene", arg(&scene), "--out", arg(&out), "--frames", "2", "--force"]);
+    assert!(output.status.success(), "{}", describe(&output));
+    assert_eq!(handflow_ingest::Recording::open(&out).unwrap().len(), 2);
+    assert!(!out.join("cam0/000002.png").exists(), "the old frame is gone");
+    // --force never deletes a folder that holds no recording.
+    let other = tmp.path().join("notes");
+    std::fs::create_dir(&other).unwrap();
+    std::fs::write(other.join("todo.txt"), "keep me").unwrap();
+    let output = handflow(&["render", "--scene", arg(&scene), "--out", arg(&other), "--force"]);
+    check_failure(&output, &["no recording"]);
+    assert!(other.join("todo.txt").is_file());
+
     let output = handflow(&["render", "--preset", "ballet", "--out", arg(&tmp.path().join("x"))]);
     check_failure(&output, &["ballet", "signer-3cam"]);
 }
@@ -408,6 +423,10 @@ fn eval_skin_scores_a_rendered_recording() {
         assert!((0.0..=1.0).contains(&x), "{key} = {x}");
     }
     assert!(v["face_detections"].as_u64().unwrap_or(0) >= 1, "the face is found: {v}");
+    let objects = v["objects"].as_array().expect("per-object recall");
+    let names: Vec<_> = objects.iter().filter_map(|o| o["object"].as_str()).collect();
+    assert_eq!(names, ["head", "left_hand", "right_hand"]);
+    assert_eq!(v["cameras"].as_array().map(Vec::len), Some(3));
     std::fs::remove_file(out.join("masks/cam2/000003.png")).unwrap();
     check_failure(&handflow(&["eval", "skin", "--recording", arg(&out)]), &["cam2", "000003.png"]);
 }

@@ -13,6 +13,7 @@
 pub mod camera;
 pub mod config;
 mod engine;
+pub mod face_fusion;
 pub mod faces;
 pub mod image;
 pub mod likelihood;

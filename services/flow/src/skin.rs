@@ -125,6 +125,9 @@ pub struct SkinModel {
 /// Share of the generic prior that adaptation never replaces.
 pub const GENERIC_SHARE: f32 = 0.25;
 
+/// Brightness factors applied to each face colour when adapting the skin model.
+const SHADING_SCALES: [f32; 4] = [0.7, 0.85, 1.0, 1.1];
+
 /// Probability floor (per bin) so that unseen colours have a finite log ratio.
 const FLOOR: f32 = 1e-7;
 
@@ -210,7 +213,13 @@ impl SkinModel {
                     u >= x0 && v >= y0 && u <= x0 + fw && v <= y0 + fh
                 });
                 if central {
-                    skin[b] += 1.0;
+                    // The same skin under less or more light: shading scales all channels
+                    // alike, so hands and the sides of the head, lit differently from the
+                    // face's centre, still match.
+                    for k in SHADING_SCALES {
+                        let shaded = [rgb[i], rgb[i + 1], rgb[i + 2]].map(|c| (f32::from(c) * k).min(255.0) as u8);
+                        skin[bin(shaded)] += 1.0;
+                    }
                     skin_bins.push(b);
                 } else if !faces.iter().any(|f| f.contains(u, v)) {
                     // The rest of the face box (hair, eyes, background corners) goes nowhere.
