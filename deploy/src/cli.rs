@@ -11,6 +11,7 @@ use serde_json::json;
 
 use crate::flow_eval::{engine_config, load_problem, run_once, EvalOptions, RunResult};
 use crate::middlebury::{write_maps, Layout};
+use crate::recording_flow::bench_recording;
 use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec, PRESETS};
 
 /// Where the demo looks for the built-in scene, relative to the working directory.
@@ -142,6 +143,13 @@ struct BenchFlowArgs {
     /// Scene folder.
     #[arg(long, default_value = DEFAULT_SCENE)]
     scene: PathBuf,
+    /// Run on a recording instead: skin coverage, forwards/backwards likelihood, every frame
+    /// (or `--frames`), reporting frames per second and the share of rays occupied.
+    #[arg(long, conflicts_with_all = ["scene", "layout", "repeats"])]
+    recording: Option<PathBuf>,
+    /// With `--recording`: estimate only the first N frames.
+    #[arg(long, requires = "recording")]
+    frames: Option<usize>,
     /// `multiview` or `fb`.
     #[arg(long, default_value = "multiview")]
     layout: Layout,
@@ -338,6 +346,9 @@ fn print_report(
 }
 
 fn bench_flow(args: &BenchFlowArgs) -> Result<()> {
+    if let Some(dir) = &args.recording {
+        return bench_flow_recording(dir, args);
+    }
     let (scene, problem) = load_problem(&args.scene, args.layout)?;
     let config = engine_config(&problem, args.layout, &options(&args.engine, 0))?;
     anyhow::ensure!(args.repeats > 0, "--repeats must be at least 1");
@@ -484,6 +495,43 @@ fn clear_output(out: &Path, force: bool) -> Result<()> {
         out.display()
     );
     std::fs::remove_dir_all(out).with_context(|| format!("removing the old recording `{}`", out.display()))
+}
+
+fn bench_flow_recording(dir: &Path, args: &BenchFlowArgs) -> Result<()> {
+    let e = &args.engine;
+    let r = bench_recording(dir, e.variant, e.particles_per_ray, &e.overrides, args.frames)?;
+    if args.json {
+        out!("{}", serde_json::to_string(&r)?);
+        return Ok(());
+    }
+    out!(
+        "recording {}: {} cameras {}x{}, reference {}, {} estimates, skin coverage, forwards/backwards, {} threads",
+        r.recording,
+        r.cameras,
+        r.width,
+        r.height,
+        r.reference,
+        r.frames,
+        r.threads
+    );
+    out!(
+        "  frames per second   {:8.1}  ({:.1} ms mean, {:.1} ms slowest)",
+        r.frames_per_second,
+        r.seconds_per_frame * 1e3,
+        r.seconds_per_frame_max * 1e3
+    );
+    out!("  rays occupied       {:8.2} %", r.occupied_share * 100.0);
+    out!("  evaluations/frame   {:8.0}", r.evaluations_per_frame);
+    out!("  decode (ingest)     {:8.1} ms per frame set, not counted", r.decode_seconds_per_frame * 1e3);
+    out!(
+        "  face detection      {:8.1} ms per round, off the hot path, not counted",
+        r.face_detection_seconds_per_round * 1e3
+    );
+    if let (Some(a), Some(s)) = (r.mask_agreement, r.on_skin_objects) {
+        out!("  on head or hands    {:8.2} % of estimated rays", s * 100.0);
+        out!("  same object in all views {:5.2} % of those", a * 100.0);
+    }
+    Ok(())
 }
 
 fn bench_render(args: &BenchRenderArgs) -> Result<()> {

@@ -7,4 +7,5 @@
 pub mod cli;
 pub mod flow_eval;
 pub mod middlebury;
+pub mod recording_flow;
 pub mod skin_eval;

@@ -5,17 +5,15 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use handflow_flow::face_fusion::fuse_faces;
-use handflow_flow::faces::FaceDetector;
 use handflow_flow::skin::SkinModel;
+use handflow_flow::skin_adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
 use handflow_ingest::synthetic::MASKS_DIR;
 use handflow_ingest::Recording;
-use handflow_protocol::Camera;
 
 /// Adaptation rate of the skin model per face detection.
-pub const ADAPTATION_RATE: f32 = 0.3;
+pub const ADAPTATION_RATE: f32 = DEFAULT_ADAPTATION_RATE;
 /// Every how many frames faces are detected (off the hot path in the live pipeline).
-pub const DETECT_EVERY: usize = 5;
+pub const DETECT_EVERY: u64 = DEFAULT_DETECT_EVERY;
 /// Every how many frames the decision is scored.
 pub const SCORE_EVERY: usize = 3;
 
@@ -117,38 +115,22 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
     let skin = skin_ids(&rec)?;
     let cameras = &rec.rig().cameras;
     let mut buf = vec![0u8; rec.frame_set_len()];
-    let mut models: Vec<SkinModel> = cameras.iter().map(|_| SkinModel::generic(ADAPTATION_RATE)).collect();
     let generic = SkinModel::generic(ADAPTATION_RATE);
-    let mut detector = FaceDetector::new().map_err(anyhow::Error::msg)?;
-    let mut detections = vec![0usize; cameras.len()];
-    let mut transferred = vec![0usize; cameras.len()];
-    let mut rejected = 0;
+    let mut adapter = SkinAdapter::new(cameras, ADAPTATION_RATE, DETECT_EVERY).map_err(anyhow::Error::msg)?;
     let mut per_camera: Vec<Counts> = cameras.iter().map(|_| Counts::default()).collect();
     let (mut adapted, mut prior) = (Counts::default(), Counts::default());
     let mut scored = 0;
     let mut object_counts = [(0u64, 0u64); 3];
     for (k, entry) in rec.frames().iter().enumerate() {
-        let detect = k % DETECT_EVERY == 0;
+        let detect = k as u64 % DETECT_EVERY == 0;
         let score = k % SCORE_EVERY == 0;
         if !detect && !score {
             continue;
         }
         rec.read_frame_into(k as u64, false, &mut buf)?;
-        let views: Vec<&[u8]> = split_views(&buf, cameras);
+        let views = rec.views(&buf);
         if detect {
-            let found: Vec<_> = views.iter().zip(cameras).map(|(v, c)| detector.detect(v, c.width, c.height)).collect();
-            let fused = fuse_faces(cameras, &found);
-            rejected += fused.rejected;
-            for (c, cam) in cameras.iter().enumerate() {
-                let faces: Vec<_> = fused.boxes[c].into_iter().collect();
-                if models[c].adapt(views[c], cam.width, cam.height, &faces) {
-                    if fused.transferred[c] {
-                        transferred[c] += 1;
-                    } else {
-                        detections[c] += 1;
-                    }
-                }
-            }
+            adapter.adapt_now(&views);
         }
         for (c, cam) in cameras.iter().enumerate() {
             let view = views[c];
@@ -177,7 +159,7 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
                     let rgb = [px[0], px[1], px[2]];
                     let object = skin.iter().position(|id| id == m);
                     let truth = object.is_some();
-                    let said = models[c].is_skin(rgb);
+                    let said = adapter.models()[c].is_skin(rgb);
                     if let Some(o) = object {
                         object_counts[o].0 += u64::from(said);
                         object_counts[o].1 += 1;
@@ -192,24 +174,25 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
             scored += 1;
         }
     }
+    let stats = adapter.stats();
     Ok(SkinScores {
         precision: adapted.precision(),
         recall: adapted.recall(),
         precision_generic: prior.precision(),
         recall_generic: prior.recall(),
-        face_detections: detections.iter().sum(),
-        faces_rejected: rejected,
+        face_detections: stats.detected.iter().sum::<u64>() as usize,
+        faces_rejected: stats.rejected as usize,
         frames_scored: scored,
         cameras: cameras
             .iter()
             .zip(&per_camera)
-            .zip(detections.iter().zip(&transferred))
+            .zip(stats.detected.iter().zip(&stats.lent))
             .map(|((cam, counts), (&d, &t))| CameraScores {
                 camera: cam.name.clone(),
                 precision: counts.precision(),
                 recall: counts.recall(),
-                face_detections: d,
-                faces_transferred: t,
+                face_detections: d as usize,
+                faces_transferred: t as usize,
             })
             .collect(),
         objects: SKIN_OBJECTS
@@ -222,18 +205,4 @@ pub fn evaluate_skin(dir: &Path) -> Result<SkinScores> {
             })
             .collect(),
     })
-}
-
-/// The views of a frame set buffer, in rig order.
-fn split_views<'a>(buf: &'a [u8], cameras: &[Camera]) -> Vec<&'a [u8]> {
-    let mut offset = 0;
-    cameras
-        .iter()
-        .map(|cam| {
-            let len = cam.width as usize * cam.height as usize * 3;
-            let view = &buf[offset..offset + len];
-            offset += len;
-            view
-        })
-        .collect()
 }

@@ -430,3 +430,28 @@ fn eval_skin_scores_a_rendered_recording() {
     std::fs::remove_file(out.join("masks/cam2/000003.png")).unwrap();
     check_failure(&handflow(&["eval", "skin", "--recording", arg(&out)]), &["cam2", "000003.png"]);
 }
+
+/// `handflow bench flow --recording` runs skin coverage with forwards/backwards on a
+/// rendered recording and reports its speed, occupancy and agreement with the masks.
+#[test]
+fn bench_flow_on_a_recording_reports_frames_per_second() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("rec");
+    let r = handflow(&["render", "--preset", "signer-3cam", "--frames", "5", "--out", arg(&out)]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let r = handflow(&["bench", "flow", "--recording", arg(&out), "--json"]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let v: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+    assert_eq!(v["frames"].as_u64(), Some(4), "frames 1-3 with t+1, the last one flushed: {v}");
+    assert!(v["frames_per_second"].as_f64().unwrap_or(0.0) > 0.0, "{v}");
+    let occupied = v["occupied_share"].as_f64().unwrap_or(-1.0);
+    assert!(occupied > 0.005 && occupied < 0.2, "head and hands are a few percent of the view: {v}");
+    assert!(v["mask_agreement"].as_f64().unwrap_or(0.0) > 0.8, "{v}");
+    assert_eq!(v["reference"].as_str(), Some("cam1"), "the frontal camera");
+    // A bad override is named; a recording with one frame is refused.
+    check_failure(
+        &handflow(&["bench", "flow", "--recording", arg(&out), "--set", "finest_level=7"]),
+        &["finest_level"],
+    );
+    check_failure(&handflow(&["bench", "flow", "--recording", arg(&out), "--frames", "1"]), &["at least 2 frames"]);
+}

@@ -56,6 +56,10 @@ pub enum Coverage {
     Dense,
     /// Empty rays stay empty (a sparse motion field is all trajectories need).
     Sparse,
+    /// Particles are seeded and kept only on rays whose colour in the reference view is
+    /// skin (the skin model's clamped log ratio above `skin_threshold`), and the skin term
+    /// of equation 4 weighs every hypothesis: on a signer this is a few percent of the rays.
+    Skin,
 }
 
 /// Configuration of [`crate::SceneFlowEngine`]. `Default` is the `handflow` variant;
@@ -88,6 +92,10 @@ pub struct EngineConfig {
     /// not say which; coarse-to-fine hand-over copies a coarse ray's particles to the four
     /// finer rays it covers. Default true in both variants.
     pub per_level_rays: bool,
+    /// Finest pyramid level estimated (default 0, full resolution). At 1 the rays are those
+    /// of the half-resolution grid, a quarter as many: enough points for trajectories at a
+    /// quarter of the work. Needs `per_level_rays`.
+    pub finest_level: usize,
     /// Seed of every random draw (default 0). Same seed, same result, any thread count.
     pub seed: u64,
     /// Camera-frame depth range of the reference camera, world units (near, far).
@@ -169,6 +177,17 @@ pub struct EngineConfig {
     /// `handflow`: colour distance (normalised units) at which a neighbour's vote in the
     /// weighted median falls to 1/e (default 0.3).
     pub refine_colour_sigma: f32,
+    /// `skin` coverage: weight of the skin term of equation 4 in a particle's log-weight
+    /// (default 1.0): the likelihood is multiplied by `10^(skin_weight * h)`, with `h` the
+    /// sum over views of the clamped log10 skin ratio of the colour each view sees at the
+    /// particle at time t. At 1 this is the product over views of the skin likelihood ratio
+    /// `min(Ps/Pbg, 10^alpha)`: a depth where one view sees background instead of skin
+    /// loses as much weight as that view's evidence says. 0 turns the factor off (rays are
+    /// still chosen by skin colour).
+    pub skin_weight: f32,
+    /// `skin` coverage: a reference-view pixel is skin when its clamped log10 skin ratio
+    /// exceeds this (default 0: the skin model is the likelier).
+    pub skin_threshold: f32,
     /// Share of each ray's prior particles replaced by fresh random ones at a new frame when
     /// the previous posterior is carried over (default 0.2).
     pub fresh_fraction: f32,
@@ -188,6 +207,7 @@ impl Default for EngineConfig {
             noise_loops: 2,
             coarse_extra_loops: 7,
             per_level_rays: true,
+            finest_level: 0,
             seed: 0,
             depth_range: (0.5, 10.0),
             speed_bound: 0.1,
@@ -212,6 +232,8 @@ impl Default for EngineConfig {
             refine_radius: 4,
             refine_colour_sigma: 0.3,
             fresh_fraction: 0.2,
+            skin_weight: 1.0,
+            skin_threshold: 0.0,
         }
     }
 }
@@ -258,6 +280,12 @@ impl EngineConfig {
         if self.pyramid_levels == 0 || self.pyramid_levels > 8 {
             return Err(format!("`pyramid_levels` must be between 1 and 8, got {}", self.pyramid_levels));
         }
+        if self.finest_level >= self.pyramid_levels || (self.finest_level > 0 && !self.per_level_rays) {
+            return Err(format!(
+                "`finest_level` must be below `pyramid_levels` ({}) and 0 unless `per_level_rays`, got {}",
+                self.pyramid_levels, self.finest_level
+            ));
+        }
         if self.noise_loops == 0 {
             return Err("`noise_loops` must be at least 1".into());
         }
@@ -287,6 +315,12 @@ impl EngineConfig {
         }
         if !(self.view_keep_fraction > 0.0 && self.view_keep_fraction <= 1.0) {
             return Err(format!("`view_keep_fraction` must be in (0, 1], got {}", self.view_keep_fraction));
+        }
+        if !(self.skin_weight.is_finite() && self.skin_weight >= 0.0) {
+            return Err(format!("`skin_weight` must be a non-negative number, got {}", self.skin_weight));
+        }
+        if !self.skin_threshold.is_finite() {
+            return Err(format!("`skin_threshold` must be a number, got {}", self.skin_threshold));
         }
         if !(0.0..=1.0).contains(&self.fresh_fraction) {
             return Err(format!("`fresh_fraction` must be in [0, 1], got {}", self.fresh_fraction));
@@ -328,6 +362,12 @@ mod tests {
         assert!(c.validate().unwrap_err().contains("depth_range"));
         let c = EngineConfig { temperature: f32::NAN, ..EngineConfig::default() };
         assert!(c.validate().unwrap_err().contains("temperature"));
+        let c = EngineConfig { finest_level: 3, ..EngineConfig::default() };
+        assert!(c.validate().unwrap_err().contains("finest_level"));
+        let c = EngineConfig { finest_level: 1, per_level_rays: false, ..EngineConfig::default() };
+        assert!(c.validate().unwrap_err().contains("finest_level"));
+        let c = EngineConfig { skin_weight: -1.0, ..EngineConfig::default() };
+        assert!(c.validate().unwrap_err().contains("skin_weight"));
     }
 
     #[test]

@@ -14,6 +14,7 @@ use crate::likelihood::{robust_window_cost, variance_likelihood, MatchImage, Ref
 use crate::particles::{ray_resample, Particle, SearchSpace};
 use crate::refine::{weighted_median_refine, RayEstimate};
 use crate::rng::RayRng;
+use crate::skin::SkinModel;
 
 /// Why the engine refused a configuration or a frame.
 #[derive(Debug, thiserror::Error)]
@@ -53,7 +54,8 @@ pub enum FlowError {
     },
 }
 
-/// The dense per-ray output of the reference view at full resolution (row-major).
+/// The dense per-ray output of the reference view (row-major), on the grid of the finest
+/// estimated pyramid level (`finest_level`; full resolution by default).
 #[derive(Clone, Debug, Default)]
 pub struct DenseField {
     /// Reference image width.
@@ -125,8 +127,18 @@ pub struct SceneFlowEngine {
     prior_valid: bool,
     /// Frame index whose posterior `particles` holds at full resolution, if any.
     posterior_of: Option<u64>,
+    /// Ring slot of that frame.
+    posterior_slot: Option<usize>,
     field: DenseField,
     stats: FrameStats,
+    /// Per-camera skin models (`skin` coverage; empty otherwise).
+    skin_models: Vec<SkinModel>,
+    /// `skin_maps[slot][camera]`: clamped log10 skin ratio of every full-resolution pixel
+    /// of that ring slot's frame (`skin` coverage).
+    skin_maps: [Vec<Vec<f32>>; 3],
+    /// `active[grid level]`: rays that may hold particles in the frame being estimated
+    /// (`skin` coverage): a coarse ray is active when any pixel it covers is skin.
+    active: Vec<Vec<bool>>,
 }
 
 /// Frames the estimate looks at, oldest first, as ring slots.
@@ -178,6 +190,11 @@ impl SceneFlowEngine {
         };
         let rays = width * height;
         let n = config.particles_per_ray;
+        let (field_width, field_height) = (grids[config.finest_level].width, grids[config.finest_level].height);
+        let field_rays = field_width * field_height;
+        let skin = config.coverage == Coverage::Skin;
+        let skin_models = if skin { vec![SkinModel::generic(0.0); cameras.len()] } else { Vec::new() };
+        let active = if skin { grids.iter().map(|g| vec![false; g.width * g.height]).collect() } else { Vec::new() };
         Ok(Self {
             config,
             cameras,
@@ -202,16 +219,54 @@ impl SceneFlowEngine {
             prior_counts: vec![0; rays],
             prior_valid: false,
             posterior_of: None,
+            posterior_slot: None,
             field: DenseField {
-                width,
-                height,
-                depth: vec![f32::NAN; rays],
-                position: vec![[f32::NAN; 3]; rays],
-                velocity: vec![[0.0; 3]; rays],
-                confidence: vec![0.0; rays],
+                width: field_width,
+                height: field_height,
+                depth: vec![f32::NAN; field_rays],
+                position: vec![[f32::NAN; 3]; field_rays],
+                velocity: vec![[0.0; 3]; field_rays],
+                confidence: vec![0.0; field_rays],
             },
             stats: FrameStats::default(),
+            skin_models,
+            skin_maps: Default::default(),
+            active,
         })
+    }
+
+    /// The per-camera skin models used by `skin` coverage (the generic prior until replaced).
+    pub fn skin_models(&self) -> &[SkinModel] {
+        &self.skin_models
+    }
+
+    /// Replaces the skin models (one per camera, rig order), e.g. after adapting them to face
+    /// detections; they apply from the next pushed frame. Only `skin` coverage uses them.
+    pub fn set_skin_models(&mut self, models: &[SkinModel]) -> Result<(), FlowError> {
+        if self.config.coverage != Coverage::Skin {
+            return Err(FlowError::Config("skin models need `coverage = \"skin\"`".into()));
+        }
+        if models.len() != self.cameras.len() {
+            return Err(FlowError::Rig(format!(
+                "{} skin models given for {} cameras",
+                models.len(),
+                self.cameras.len()
+            )));
+        }
+        self.skin_models.clone_from_slice(models);
+        Ok(())
+    }
+
+    /// The clamped log10 skin ratio of the colour camera `camera` saw at full-resolution
+    /// pixel (`x`, `y`) in the frame of the last estimate (`skin` coverage; `None` otherwise
+    /// or outside the image).
+    pub fn skin_at(&self, camera: usize, x: usize, y: usize) -> Option<f32> {
+        let cam = self.cameras.get(camera)?;
+        let slot = self.posterior_slot?;
+        if x >= cam.width as usize || y >= cam.height as usize {
+            return None;
+        }
+        self.skin_maps[slot].get(camera)?.get(y * cam.width as usize + x).copied()
     }
 
     /// The configuration in use.
@@ -239,22 +294,24 @@ impl SceneFlowEngine {
         &self.field
     }
 
-    /// The particles of full-resolution ray `ray` after the last estimate (empty for an
-    /// empty ray). World position of a particle: [`SceneFlowEngine::particle_position`].
+    /// The particles of ray `ray` of the finest estimated grid (the [`DenseField`]'s grid)
+    /// after the last estimate (empty for an empty ray). World position of a particle:
+    /// [`SceneFlowEngine::particle_position`].
     pub fn ray_particles(&self, ray: usize) -> &[Particle] {
         let n = self.config.particles_per_ray;
         &self.particles[ray * n..ray * n + usize::from(self.counts[ray])]
     }
 
-    /// World position of a particle of full-resolution ray `ray`.
+    /// World position of a particle of ray `ray` of the finest estimated grid.
     pub fn particle_position(&self, ray: usize, particle: &Particle) -> [f32; 3] {
-        point_on_ray(self.origin, self.grids[0].dirs[ray], particle.depth)
+        point_on_ray(self.origin, self.grids[self.config.finest_level].dirs[ray], particle.depth)
     }
 
     /// Forgets every frame and the posterior (a new, unrelated stream follows).
     pub fn reset(&mut self) {
         self.ring_len = 0;
         self.posterior_of = None;
+        self.posterior_slot = None;
     }
 
     /// Adds the next synchronised frame set (RGB8, one view per camera in rig order) and
@@ -288,11 +345,22 @@ impl SceneFlowEngine {
                 floor: self.config.local_normalisation_floor,
             },
         );
+        let finest = self.config.finest_level;
         let pyramids = &mut self.ring[slot];
         pyramids.resize_with(self.cameras.len(), Pyramid::default);
         pyramids.par_iter_mut().zip(self.cameras.par_iter()).zip(views.par_iter()).for_each(|((pyr, cam), view)| {
-            pyr.rebuild(cam.width as usize, cam.height as usize, view, levels, local);
+            pyr.rebuild(cam.width as usize, cam.height as usize, view, levels, local, finest);
         });
+        if self.config.coverage == Coverage::Skin {
+            let maps = &mut self.skin_maps[slot];
+            maps.resize_with(self.cameras.len(), Vec::new);
+            maps.par_iter_mut().zip(self.skin_models.par_iter()).zip(views.par_iter()).for_each(
+                |((map, model), view)| {
+                    map.clear();
+                    map.extend(view.chunks_exact(3).map(|p| model.log_ratio([p[0], p[1], p[2]])));
+                },
+            );
+        }
         self.ring_newest = slot;
         self.ring_len = (self.ring_len + 1).min(3);
         self.frames_pushed += 1;
@@ -343,16 +411,20 @@ impl SceneFlowEngine {
         let use_prior = self.posterior_of == Some(frame.wrapping_sub(1));
         let mut evaluations = 0u64;
         self.prior_valid = use_prior;
+        if self.config.coverage == Coverage::Skin {
+            self.update_active(window.slots[1]);
+        }
         if use_prior {
             self.carry_posterior_forward(frame);
             self.prior_counts.copy_from_slice(&self.counts);
         }
         let levels = self.config.pyramid_levels;
+        let finest = self.config.finest_level;
         let per_level_grid = self.config.per_level_rays;
         let top = levels - 1;
         let top_grid = if per_level_grid { top } else { 0 };
         self.seed_top_level(top_grid, use_prior, frame);
-        for level in (0..levels).rev() {
+        for level in (finest..levels).rev() {
             let grid = if per_level_grid { level } else { 0 };
             if per_level_grid && level != top {
                 self.upsample_particles(level + 1, level);
@@ -361,7 +433,7 @@ impl SceneFlowEngine {
             let loops = self.config.noise_loops + extra;
             for it in 0..loops {
                 let sigma_level_px = self.config.diffusion_px * self.config.diffusion_shrink.powi(it as i32);
-                let last = level == 0 && it + 1 == loops;
+                let last = level == finest && it + 1 == loops;
                 let stage = (level * 64 + it) as u64;
                 evaluations += self.iterate(window, level, grid, sigma_level_px, last, frame, stage, it > 0);
                 std::mem::swap(&mut self.best, &mut self.best_back);
@@ -369,7 +441,9 @@ impl SceneFlowEngine {
         }
         self.publish_field(window);
         self.posterior_of = Some(frame);
-        let occupied_rays = self.counts.iter().filter(|&&c| c > 0).count();
+        self.posterior_slot = Some(window.slots[1]);
+        let rays = self.grids[finest].width * self.grids[finest].height;
+        let occupied_rays = self.counts[..rays].iter().filter(|&&c| c > 0).count();
         self.stats = FrameStats {
             frame,
             evaluations,
@@ -387,6 +461,25 @@ impl SceneFlowEngine {
         );
     }
 
+    /// Marks the rays of every grid level that cover a skin pixel of the reference view in
+    /// ring slot `slot`.
+    fn update_active(&mut self, slot: usize) {
+        let threshold = self.config.skin_threshold;
+        let map = &self.skin_maps[slot][self.reference];
+        self.active[0].par_iter_mut().zip(map.par_iter()).for_each(|(a, &h)| *a = h > threshold);
+        for l in 1..self.active.len() {
+            let (fw, fh) = (self.grids[l - 1].width, self.grids[l - 1].height);
+            let cw = self.grids[l].width;
+            let (finer, coarser) = self.active.split_at_mut(l);
+            let finer = &finer[l - 1];
+            coarser[0].par_iter_mut().enumerate().for_each(|(ray, a)| {
+                let (i, j) = (ray % cw, ray / cw);
+                let (x0, y0) = (2 * i, 2 * j);
+                *a = (y0..(y0 + 2).min(fh)).any(|y| (x0..(x0 + 2).min(fw)).any(|x| finer[y * fw + x]));
+            });
+        }
+    }
+
     /// The prior of a new frame: the previous posterior moved by its own velocity
     /// (constant-velocity model), each particle re-assigned to the reference ray it now
     /// projects onto; rays receiving more than N keep a random N; a share of each ray is
@@ -394,9 +487,10 @@ impl SceneFlowEngine {
     /// or stay empty (sparse).
     fn carry_posterior_forward(&mut self, frame: u64) {
         let n = self.config.particles_per_ray;
-        let grid = &self.grids[0];
+        let finest = self.config.finest_level;
+        let grid = &self.grids[finest];
         let (w, h) = (grid.width, grid.height);
-        let reference = &self.projections[0][self.reference];
+        let reference = &self.projections[finest][self.reference];
         self.counts_back.iter_mut().for_each(|c| *c = 0);
         let mut rng = RayRng::for_item(self.config.seed, frame, 1 << 20, 0);
         for ray in 0..w * h {
@@ -429,15 +523,28 @@ impl SceneFlowEngine {
             }
         }
         let fresh = (self.config.fresh_fraction * n as f32).round() as usize;
-        let dense = self.config.coverage == Coverage::Dense;
+        let refill = matches!(self.config.coverage, Coverage::Dense | Coverage::Skin);
+        let active = (self.config.coverage == Coverage::Skin).then(|| self.active[finest].as_slice());
         let (seed, space) = (self.config.seed, self.space);
         let (back, counts_back) = (&self.particles_back, &self.counts_back);
-        self.particles.par_chunks_mut(n).zip(self.counts.par_iter_mut()).enumerate().for_each(|(ray, (out, count))| {
+        let (particles, counts) = (&mut self.particles[..w * h * n], &mut self.counts[..w * h]);
+        particles.par_chunks_mut(n).zip(counts.par_iter_mut()).enumerate().for_each(|(ray, (out, count))| {
+            if active.is_some_and(|a| !a[ray]) {
+                *count = 0;
+                return;
+            }
             let mut rng = RayRng::for_item(seed, frame, 1 << 21, ray as u64);
             let mut have = usize::from(counts_back[ray]);
             out[..have].copy_from_slice(&back[ray * n..ray * n + have]);
-            if have == 0 && dense {
+            if have == 0 && refill {
                 have = refill_from_neighbours(back, counts_back, n, w, h, ray, out, &mut rng);
+            }
+            if have == 0 && active.is_some() {
+                // Skin that nothing moved onto (a hand entering the view): a fresh start.
+                for slot in out.iter_mut() {
+                    *slot = space.random_particle(&mut rng);
+                }
+                have = n;
             }
             if have == 0 {
                 *count = 0;
@@ -463,16 +570,19 @@ impl SceneFlowEngine {
         let n = self.config.particles_per_ray;
         // Neighbour bests from an earlier frame or level must not leak into this one.
         self.best.iter_mut().for_each(|b| *b = Particle::EMPTY);
-        if use_prior && grid_level == 0 {
-            return; // `particles` already holds the prior at full resolution.
+        let finest = self.config.finest_level;
+        if use_prior && grid_level == finest {
+            return; // `particles` already holds the prior on the finest grid.
         }
         let (gw, gh) = (self.grids[grid_level].width, self.grids[grid_level].height);
-        let (fw, fh) = (self.grids[0].width, self.grids[0].height);
+        let (fw, fh) = (self.grids[finest].width, self.grids[finest].height);
         let space = self.space;
         let seed = self.config.seed;
+        let active = (self.config.coverage == Coverage::Skin).then(|| self.active[grid_level].as_slice());
         if use_prior {
-            // Coarse ray (i, j) covers full-resolution pixels [i*s, (i+1)*s): take the middle one.
-            let s = 1usize << grid_level;
+            // Coarse ray (i, j) covers finest-grid rays [i*s, (i+1)*s): take the middle one,
+            // or with skin coverage the first of them holding particles.
+            let s = 1usize << (grid_level - finest);
             std::mem::swap(&mut self.particles, &mut self.particles_back);
             std::mem::swap(&mut self.counts, &mut self.counts_back);
             let (src, src_counts) = (&self.particles_back, &self.counts_back);
@@ -484,9 +594,31 @@ impl SceneFlowEngine {
                     let (i, j) = (ray % gw, ray / gw);
                     let fx = (i * s + s / 2).min(fw - 1);
                     let fy = (j * s + s / 2).min(fh - 1);
-                    let from = fy * fw + fx;
-                    *count = src_counts[from];
-                    out.copy_from_slice(&src[from * n..from * n + n]);
+                    let mut from = fy * fw + fx;
+                    if let Some(active) = active {
+                        if !active[ray] {
+                            *count = 0;
+                            return;
+                        }
+                        if src_counts[from] == 0 {
+                            let block = (j * s..((j + 1) * s).min(fh))
+                                .flat_map(|y| (i * s..((i + 1) * s).min(fw)).map(move |x| y * fw + x));
+                            if let Some(occupied) = block.into_iter().find(|&r| src_counts[r] > 0) {
+                                from = occupied;
+                            } else {
+                                let mut rng = RayRng::for_item(seed, frame, 1 << 22, ray as u64);
+                                for slot in out.iter_mut() {
+                                    *slot = space.random_particle(&mut rng);
+                                    slot.weight = 1.0 / n as f32;
+                                }
+                                *count = n as u8;
+                                return;
+                            }
+                        }
+                    }
+                    let c = src_counts[from];
+                    *count = c;
+                    out[..usize::from(c)].copy_from_slice(&src[from * n..from * n + usize::from(c)]);
                 });
             return;
         }
@@ -495,6 +627,10 @@ impl SceneFlowEngine {
             .zip(self.counts[..gw * gh].par_iter_mut())
             .enumerate()
             .for_each(|(ray, (out, count))| {
+                if active.is_some_and(|a| !a[ray]) {
+                    *count = 0;
+                    return;
+                }
                 let mut rng = RayRng::for_item(seed, frame, 1 << 22, ray as u64);
                 for slot in out.iter_mut() {
                     *slot = space.random_particle(&mut rng);
@@ -518,8 +654,10 @@ impl SceneFlowEngine {
         // Sparse mode: a ray is occupied at this level only if the full-resolution ray at its
         // centre held particles in the prior, so empty rays stay empty through the pyramid.
         let occupancy = (self.config.coverage == Coverage::Sparse && self.prior_valid).then_some(&self.prior_counts);
-        let (full_w, full_h) = (self.grids[0].width, self.grids[0].height);
-        let s = 1usize << fine;
+        let active = (self.config.coverage == Coverage::Skin).then(|| self.active[fine].as_slice());
+        let finest = self.config.finest_level;
+        let (full_w, full_h) = (self.grids[finest].width, self.grids[finest].height);
+        let s = 1usize << (fine - finest);
         self.particles[..fw * fh * n]
             .par_chunks_mut(n)
             .zip(self.counts[..fw * fh].par_iter_mut())
@@ -530,13 +668,14 @@ impl SceneFlowEngine {
                 let from = j.min(ch - 1) * cw + i.min(cw - 1);
                 let centre =
                     ((ray / fw) * s + s / 2).min(full_h - 1) * full_w + ((ray % fw) * s + s / 2).min(full_w - 1);
-                if occupancy.is_some_and(|o| o[centre] == 0) {
+                if occupancy.is_some_and(|o| o[centre] == 0) || active.is_some_and(|a| !a[ray]) {
                     *count = 0;
                     *best = Particle::EMPTY;
                     return;
                 }
-                *count = src_counts[from];
-                out.copy_from_slice(&src[from * n..from * n + n]);
+                let c = src_counts[from];
+                *count = c;
+                out[..usize::from(c)].copy_from_slice(&src[from * n..from * n + usize::from(c)]);
                 *best = coarse_best[from];
             });
     }
@@ -595,12 +734,15 @@ impl SceneFlowEngine {
             sigma_px: sigma_level_px * (1u32 << level) as f32,
             keep: ((n_images - 1) as f32 * self.config.view_keep_fraction).ceil().max(1.0) as usize,
             optical_axis: self.optical_axis,
-            sweep: if self.config.variant == Variant::Handflow && self.config.propagation {
-                Sweep::for_stage(stage)
-            } else {
-                Sweep::None
-            },
+            sweep: Sweep::for_config(&self.config, stage),
             elite_cost_valid,
+            skin: (self.config.coverage == Coverage::Skin && self.config.skin_weight > 0.0).then(|| SkinTerm {
+                maps: &self.skin_maps[window.slots[1]],
+                projections: &self.projections[0],
+                cameras: &self.cameras,
+                reference: self.reference,
+                weight: self.config.skin_weight * std::f32::consts::LN_10,
+            }),
             best_prev: &self.best,
             top_level: level + 1 == self.config.pyramid_levels,
             last,
@@ -610,12 +752,7 @@ impl SceneFlowEngine {
         let rays = gw * gh;
         let (particles, counts) = (&mut self.particles[..rays * n], &mut self.counts[..rays]);
         let (best_out, estimates) = (&mut self.best_back[..rays], &mut self.estimates[..rays]);
-        let sweep = if ctx.config.variant == Variant::Handflow && ctx.config.propagation {
-            Sweep::for_stage(stage)
-        } else {
-            Sweep::None
-        };
-        match sweep {
+        match ctx.sweep {
             // Jacobi: every ray reads its neighbours' previous best; fully parallel.
             Sweep::None => particles
                 .par_chunks_mut(n)
@@ -663,6 +800,33 @@ impl SceneFlowEngine {
                         true if y + 1 < gh => Some(&after[..gw]),
                         _ => None,
                     };
+                    // Sparse coverage: most rows are empty or nearly so; a parallel dispatch
+                    // per row would cost more than the row's work.
+                    let occupied = counts[row.clone()].iter().filter(|&&c| c > 0).count();
+                    if occupied == 0 {
+                        this_row.iter_mut().for_each(|b| *b = Particle::EMPTY);
+                        if ctx.last {
+                            estimates[row].iter_mut().for_each(|e| *e = RayEstimate::default());
+                        }
+                        continue;
+                    }
+                    if occupied < SEQUENTIAL_ROW_RAYS {
+                        for x in 0..gw {
+                            let (p, c) = (
+                                &mut particles[(row.start + x) * n..(row.start + x + 1) * n],
+                                &mut counts[row.start + x],
+                            );
+                            evals += ctx.update_ray(
+                                y * gw + x,
+                                p,
+                                c,
+                                previous.map(|r| r[x]),
+                                &mut this_row[x],
+                                &mut estimates[row.start + x],
+                            );
+                        }
+                        continue;
+                    }
                     evals += particles[row.start * n..row.end * n]
                         .par_chunks_mut(n)
                         .zip(counts[row.clone()].par_iter_mut())
@@ -680,11 +844,13 @@ impl SceneFlowEngine {
     /// Turns the per-ray estimates (refined for `handflow`) into the dense field.
     fn publish_field(&mut self, window: Window) {
         let refine = self.config.variant == Variant::Handflow && self.config.refine_radius > 0;
+        let finest = self.config.finest_level;
+        let rays = self.grids[finest].width * self.grids[finest].height;
         let source = if refine {
-            let guide = self.ring[window.slots[1]][self.reference].level(0);
+            let guide = self.ring[window.slots[1]][self.reference].level(finest);
             weighted_median_refine(
-                &self.estimates,
-                &mut self.refined,
+                &self.estimates[..rays],
+                &mut self.refined[..rays],
                 guide,
                 self.config.refine_radius,
                 self.config.refine_colour_sigma,
@@ -693,7 +859,7 @@ impl SceneFlowEngine {
         } else {
             &self.estimates
         };
-        let dirs = &self.grids[0].dirs;
+        let dirs = &self.grids[finest].dirs;
         let origin = self.origin;
         let field = &mut self.field;
         field
@@ -720,6 +886,9 @@ impl SceneFlowEngine {
     }
 }
 
+/// Rows of a column sweep with fewer occupied rays than this are updated on one thread.
+const SEQUENTIAL_ROW_RAYS: usize = 48;
+
 /// Order in which rays are updated within one noise loop.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Sweep {
@@ -732,8 +901,18 @@ enum Sweep {
 }
 
 impl Sweep {
-    /// Cycles through the four directions so that information flows every way.
-    fn for_stage(stage: u64) -> Self {
+    /// The sweep of a noise loop: none without propagation (`paper`), else the four
+    /// directions in turn so that information flows every way. With skin coverage rows
+    /// only: a column sweep runs its rows one after another and a skin blob's rows are too
+    /// short to share between threads, so vertical propagation instead comes from the
+    /// neighbours above and below offering their previous best.
+    fn for_config(config: &EngineConfig, stage: u64) -> Self {
+        if config.variant != Variant::Handflow || !config.propagation {
+            return Sweep::None;
+        }
+        if config.coverage == Coverage::Skin {
+            return Sweep::Rows { reverse: stage % 2 == 1 };
+        }
         match stage % 4 {
             0 => Sweep::Rows { reverse: false },
             1 => Sweep::Columns { reverse: false },
@@ -765,11 +944,47 @@ struct IterationContext<'a> {
     /// Whether `best_prev` holds costs evaluated on this level (not the first loop after a
     /// level change or a new frame), so the elite need not be evaluated again.
     elite_cost_valid: bool,
+    /// Equation 4's factor (`skin` coverage with a positive `skin_weight`).
+    skin: Option<SkinTerm<'a>>,
     best_prev: &'a [Particle],
     top_level: bool,
     last: bool,
     frame: u64,
     stage: u64,
+}
+
+/// The skin term of equation 4 at time t, as a natural-log weight.
+struct SkinTerm<'a> {
+    /// Per camera: clamped log10 skin ratio of each full-resolution pixel.
+    maps: &'a [Vec<f32>],
+    /// Full-resolution projections.
+    projections: &'a [LevelProjection],
+    cameras: &'a [Camera],
+    reference: usize,
+    /// `skin_weight * ln 10`.
+    weight: f32,
+}
+
+impl SkinTerm<'_> {
+    /// `weight * sum over the other views of their clamped log ratio at the point's pixel`.
+    /// The reference view is left out: it sees the same pixel for every hypothesis of a
+    /// ray, so it cannot change their relative weights. Views the point falls outside of
+    /// say nothing.
+    #[inline]
+    fn log_weight(&self, pos: [f32; 3]) -> f32 {
+        let mut h = 0.0;
+        for (q, ((map, proj), cam)) in self.maps.iter().zip(self.projections).zip(self.cameras).enumerate() {
+            if q == self.reference {
+                continue;
+            }
+            let Some([u, v]) = proj.project(pos) else { continue };
+            let (x, y) = (u.round(), v.round());
+            if x >= 0.0 && y >= 0.0 && x < cam.width as f32 && y < cam.height as f32 {
+                h += map[y as usize * cam.width as usize + x as usize];
+            }
+        }
+        self.weight * h
+    }
 }
 
 /// Candidates a ray weighs per iteration: its particles, four neighbours' best, exploration.
@@ -828,7 +1043,10 @@ impl IterationContext<'_> {
         for k in 0..n {
             let p = self.space.diffuse(&particles[k], self.sigma_px, rng);
             let pos = point_on_ray(self.origin, dir, p.depth);
-            let l = variance_likelihood(self.images, reference_colour, pos, p.velocity, self.config.epsilon);
+            let mut l = variance_likelihood(self.images, reference_colour, pos, p.velocity, self.config.epsilon);
+            if let Some(skin) = &self.skin {
+                l *= skin.log_weight(pos).exp();
+            }
             cands[k] = Particle { cost: 1.0 / l, ..p };
             likelihood[k] = l;
             total += l;
@@ -961,6 +1179,9 @@ impl IterationContext<'_> {
             let along = v[0] * sight[0] + v[1] * sight[1] + v[2] * sight[2];
             let across_sq = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2] - along * along).max(0.0);
             log_w[k] = -p.cost * inv_t - across_sq * prior_scale - along * along * prior_scale_depth;
+            if let Some(skin) = &self.skin {
+                log_w[k] += skin.log_weight(point_on_ray(self.origin, dir, p.depth));
+            }
             if let Some(c) = consensus {
                 // Truncated quadratic: smooth within a surface, free across a motion edge.
                 let sigma = self.config.smoothness_px * p.depth / self.space.focal_px;

@@ -59,29 +59,40 @@ impl ColourImage {
     /// Fills `self` from interleaved RGB8 and normalises it to zero mean per channel and unit
     /// variance over all channels. A flat image (no variance) is left at zero mean, unscaled.
     pub fn set_normalised_from_rgb8(&mut self, width: usize, height: usize, rgb: &[u8]) {
+        use rayon::prelude::*;
         debug_assert_eq!(rgb.len(), width * height * 3);
         self.resize(width, height);
         let n = (width * height).max(1) as f64;
-        let mut sum = [0f64; 3];
-        let mut sum_sq = [0f64; 3];
-        for px in rgb.chunks_exact(3) {
-            for c in 0..3 {
-                let v = f64::from(px[c]);
-                sum[c] += v;
-                sum_sq[c] += v * v;
-            }
-        }
-        let mean = sum.map(|s| s / n);
-        let variance: f64 = (0..3).map(|c| sum_sq[c] / n - mean[c] * mean[c]).sum::<f64>() / 3.0;
+        // Exact integer sums, rows in parallel.
+        let row_bytes = (width * 3).max(1);
+        let (sum, sum_sq) = rgb
+            .par_chunks(row_bytes)
+            .map(|row| {
+                let (mut s, mut q) = ([0u64; 3], [0u64; 3]);
+                for px in row.chunks_exact(3) {
+                    for c in 0..3 {
+                        let v = u64::from(px[c]);
+                        s[c] += v;
+                        q[c] += v * v;
+                    }
+                }
+                (s, q)
+            })
+            .reduce(
+                || ([0u64; 3], [0u64; 3]),
+                |(a, b), (c, d)| (std::array::from_fn(|k| a[k] + c[k]), std::array::from_fn(|k| b[k] + d[k])),
+            );
+        let mean = sum.map(|s| s as f64 / n);
+        let variance: f64 = (0..3).map(|c| sum_sq[c] as f64 / n - mean[c] * mean[c]).sum::<f64>() / 3.0;
         let scale = if variance > 1e-9 { 1.0 / variance.sqrt() } else { 1.0 };
-        for (dst, px) in self.pixels.iter_mut().zip(rgb.chunks_exact(3)) {
-            *dst = [
-                ((f64::from(px[0]) - mean[0]) * scale) as f32,
-                ((f64::from(px[1]) - mean[1]) * scale) as f32,
-                ((f64::from(px[2]) - mean[2]) * scale) as f32,
-                0.0,
-            ];
-        }
+        // One table per channel: 256 values instead of a subtraction and product per pixel.
+        let table: [[f32; 256]; 3] =
+            std::array::from_fn(|c| std::array::from_fn(|v| ((v as f64 - mean[c]) * scale) as f32));
+        self.pixels.par_chunks_mut(width.max(1)).zip(rgb.par_chunks(row_bytes)).for_each(|(dst, row)| {
+            for (d, px) in dst.iter_mut().zip(row.chunks_exact(3)) {
+                *d = [table[0][usize::from(px[0])], table[1][usize::from(px[1])], table[2][usize::from(px[2])], 0.0];
+            }
+        });
     }
 
     /// Bilinear sample at subpixel `(x, y)` (pixel centres at integers), or `None` when the
@@ -138,6 +149,7 @@ impl ColourImage {
     /// each pair of pixels, so that pixel `i` of the coarse image sits at `2i + 0.5` of this
     /// one (the convention [`crate::camera::LevelProjection`] uses) and aliasing is damped.
     pub fn downsample_into(&self, dst: &mut ColourImage, scratch: &mut Vec<Rgba>) {
+        use rayon::prelude::*;
         let (w, h) = (self.width, self.height);
         let (cw, ch) = (w.div_ceil(2).max(1), h.div_ceil(2).max(1));
         dst.resize(cw, ch);
@@ -145,9 +157,8 @@ impl ColourImage {
         scratch.resize(cw * h, [0.0; 4]);
         const TAPS: [f32; 4] = [0.125, 0.375, 0.375, 0.125];
         let clamp = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
-        for y in 0..h {
-            let row = &self.pixels[y * w..(y + 1) * w];
-            for cx in 0..cw {
+        scratch.par_chunks_mut(cw).zip(self.pixels.par_chunks(w)).for_each(|(out, row)| {
+            for (cx, o) in out.iter_mut().enumerate() {
                 let mut acc = [0.0f32; 4];
                 for (t, weight) in TAPS.iter().enumerate() {
                     let p = row[clamp(2 * cx as isize - 1 + t as isize, w)];
@@ -155,21 +166,23 @@ impl ColourImage {
                         acc[k] += weight * p[k];
                     }
                 }
-                scratch[y * cw + cx] = acc;
+                *o = acc;
             }
-        }
-        for cy in 0..ch {
-            for cx in 0..cw {
+        });
+        let scratch = &*scratch;
+        dst.pixels.par_chunks_mut(cw).enumerate().for_each(|(cy, out)| {
+            let rows: [usize; 4] = std::array::from_fn(|t| clamp(2 * cy as isize - 1 + t as isize, h) * cw);
+            for (cx, o) in out.iter_mut().enumerate() {
                 let mut acc = [0.0f32; 4];
                 for (t, weight) in TAPS.iter().enumerate() {
-                    let p = scratch[clamp(2 * cy as isize - 1 + t as isize, h) * cw + cx];
+                    let p = scratch[rows[t] + cx];
                     for k in 0..4 {
                         acc[k] += weight * p[k];
                     }
                 }
-                dst.pixels[cy * cw + cx] = acc;
+                *o = acc;
             }
-        }
+        });
     }
 }
 
@@ -197,7 +210,8 @@ pub struct LocalNormalisation {
 
 impl Pyramid {
     /// Rebuilds the pyramid from RGB8 in place (buffers are reused across frames), with
-    /// matching levels when `local` is given.
+    /// matching levels when `local` is given, from level `matching_from` up (finer matching
+    /// levels are left empty: an engine estimating only coarser levels never reads them).
     pub fn rebuild(
         &mut self,
         width: usize,
@@ -205,6 +219,7 @@ impl Pyramid {
         rgb: &[u8],
         levels: usize,
         local: Option<LocalNormalisation>,
+        matching_from: usize,
     ) {
         let levels = levels.max(1);
         self.levels.resize_with(levels, ColourImage::default);
@@ -216,8 +231,10 @@ impl Pyramid {
         match local {
             Some(params) => {
                 self.matching.resize_with(levels, ColourImage::default);
-                for (src, dst) in self.levels.iter().zip(self.matching.iter_mut()) {
-                    src.local_normalise_into(dst, params, &mut self.scratch);
+                for (l, (src, dst)) in self.levels.iter().zip(self.matching.iter_mut()).enumerate() {
+                    if l >= matching_from {
+                        src.local_normalise_into(dst, params, &mut self.scratch);
+                    }
                 }
             }
             None => self.matching.clear(),
@@ -251,45 +268,52 @@ impl ColourImage {
     /// channel) and divided by the neighbourhood's standard deviation (over all channels,
     /// plus `floor` in quadrature): the per-pixel form of normalised cross-correlation.
     pub fn local_normalise_into(&self, dst: &mut ColourImage, params: LocalNormalisation, scratch: &mut Vec<Rgba>) {
+        use rayon::prelude::*;
         let (w, h) = (self.width, self.height);
         dst.resize(w, h);
-        // Box sums of value and squared value (pad lane holds the squared sum), separable.
+        if w == 0 || h == 0 {
+            return;
+        }
+        // Horizontal box sums of value and squared value (pad lane holds the squared sum),
+        // rows in parallel.
         scratch.clear();
         scratch.resize(w * h, [0.0; 4]);
         let r = params.radius as isize;
         let clamp = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
-        for y in 0..h {
-            let row = &self.pixels[y * w..(y + 1) * w];
+        scratch.par_chunks_mut(w).zip(self.pixels.par_chunks(w)).for_each(|(out, row)| {
             let mut acc = [0.0f32; 4];
             for dx in -r..=r {
                 add_with_square(&mut acc, row[clamp(dx, w)], 1.0);
             }
-            for x in 0..w {
-                scratch[y * w + x] = acc;
+            for (x, o) in out.iter_mut().enumerate() {
+                *o = acc;
                 add_with_square(&mut acc, row[clamp(x as isize - r, w)], -1.0);
                 add_with_square(&mut acc, row[clamp(x as isize + r + 1, w)], 1.0);
             }
-        }
+        });
+        // Vertical sums row by row into the output row itself (contiguous, no buffer), then
+        // normalised in place.
         let area = ((2 * r + 1) * (2 * r + 1)) as f32;
         let floor_sq = params.floor * params.floor;
-        for x in 0..w {
-            let mut acc = [0.0f32; 4];
+        let scratch = &*scratch;
+        dst.pixels.par_chunks_mut(w).zip(self.pixels.par_chunks(w)).enumerate().for_each(|(y, (out, src))| {
+            out.iter_mut().for_each(|o| *o = [0.0; 4]);
             for dy in -r..=r {
-                let s = scratch[clamp(dy, h) * w + x];
-                (0..4).for_each(|k| acc[k] += s[k]);
+                let row = &scratch[clamp(y as isize + dy, h) * w..][..w];
+                for (o, s) in out.iter_mut().zip(row) {
+                    for k in 0..4 {
+                        o[k] += s[k];
+                    }
+                }
             }
-            for y in 0..h {
-                let mean = [acc[0] / area, acc[1] / area, acc[2] / area];
-                let mean_sq = acc[3] / (3.0 * area);
+            for (o, p) in out.iter_mut().zip(src) {
+                let mean = [o[0] / area, o[1] / area, o[2] / area];
+                let mean_sq = o[3] / (3.0 * area);
                 let var = (mean_sq - (mean[0] * mean[0] + mean[1] * mean[1] + mean[2] * mean[2]) / 3.0).max(0.0);
                 let inv = 1.0 / (var + floor_sq).sqrt();
-                let p = self.pixels[y * w + x];
-                dst.pixels[y * w + x] = [(p[0] - mean[0]) * inv, (p[1] - mean[1]) * inv, (p[2] - mean[2]) * inv, 0.0];
-                let out = scratch[clamp(y as isize - r, h) * w + x];
-                let inn = scratch[clamp(y as isize + r + 1, h) * w + x];
-                (0..4).for_each(|k| acc[k] += inn[k] - out[k]);
+                *o = [(p[0] - mean[0]) * inv, (p[1] - mean[1]) * inv, (p[2] - mean[2]) * inv, 0.0];
             }
-        }
+        });
     }
 }
 
@@ -393,7 +417,7 @@ mod tests {
             }
         }
         let mut pyr = Pyramid::default();
-        pyr.rebuild(w, h, &rgb, 3, None);
+        pyr.rebuild(w, h, &rgb, 3, None, 0);
         assert_eq!(pyr.len(), 3);
         assert_eq!((pyr.level(1).width(), pyr.level(1).height()), (16, 8));
         assert_eq!((pyr.level(2).width(), pyr.level(2).height()), (8, 4));

@@ -233,7 +233,7 @@ fn sparse_mode_leaves_rays_empty_and_dense_mode_refills_them() {
                 assert!(left_share > 5.0 * other_share, "empty share left {left_share}, elsewhere {other_share}");
                 assert!(empty_rays_have_no_estimate, "an empty ray has no estimate");
             }
-            handflow_flow::Coverage::Dense => {
+            _ => {
                 assert_eq!(stats.occupied_rays, rays, "every ray refilled");
                 assert!(empty.is_empty());
             }
@@ -289,4 +289,108 @@ fn bad_frames_are_refused_with_the_camera_named() {
     // Nothing accepted is lost: the engine still works after refusing.
     assert!(!push(&mut engine, &views));
     assert!(push(&mut engine, &render_views(&cameras, 1.0)));
+}
+
+/// Centre and radius, in plane coordinates, of the skin-coloured disc of [`render_skin`].
+const DISC: (f64, f64, f64) = (0.2, 0.05, 0.35);
+
+/// Like [`render`], with the plane bluish cloth except for a textured skin-coloured disc
+/// that moves with it.
+fn render_skin(camera: &Camera, k: f64) -> Vec<u8> {
+    let mut rgb = Vec::with_capacity((WIDTH * HEIGHT * 3) as usize);
+    let centre = camera.centre();
+    for y in 0..HEIGHT {
+        for x in 0..WIDTH {
+            let ray = camera.back_project(&nalgebra::Point2::new(x as f64, y as f64));
+            let s = (PLANE_DEPTH - centre.z) / ray.direction.z;
+            let p: Point3<f64> = ray.at(s);
+            let (tx, ty) = (p.x - k * VELOCITY[0], p.y - k * VELOCITY[1]);
+            let t = texture(tx, ty, 1);
+            let on_disc = (tx - DISC.0).hypot(ty - DISC.1) < DISC.2;
+            let colour = if on_disc {
+                [212.0, 178.0, 152.0].map(|c| c * (0.75 + 0.4 * t))
+            } else {
+                [30.0 + 60.0 * t, 60.0 + 80.0 * t, 120.0 + 100.0 * t]
+            };
+            rgb.extend(colour.map(|c| c.min(255.0) as u8));
+        }
+    }
+    rgb
+}
+
+#[test]
+fn skin_coverage_estimates_only_the_skin_and_gets_it_right() {
+    let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
+    let config = EngineConfig {
+        temporal: Temporal::ForwardsBackwards,
+        coverage: handflow_flow::Coverage::Skin,
+        depth_range: (2.0, 10.0),
+        speed_bound: 0.2,
+        ..EngineConfig::default()
+    };
+    let mut engine = SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine");
+    assert_eq!(engine.skin_models().len(), 2, "generic models until replaced");
+    let mut estimates = 0;
+    for k in 0..4 {
+        let views: Vec<Vec<u8>> = cameras.iter().map(|c| render_skin(c, f64::from(k))).collect();
+        let refs: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
+        estimates += usize::from(engine.push_frame(&refs).expect("push").is_some());
+    }
+    assert_eq!(estimates, 2, "forwards/backwards: frames 1 and 2");
+    // The estimate is for frame 2: where is the disc in the reference view then?
+    let frame = 2.0;
+    let reference = &cameras[0];
+    let on_disc = |x: usize, y: usize, margin: f64| {
+        let ray = reference.back_project(&nalgebra::Point2::new(x as f64, y as f64));
+        let p = ray.at((PLANE_DEPTH - reference.centre().z) / ray.direction.z);
+        let (tx, ty) = (p.x - frame * VELOCITY[0], p.y - frame * VELOCITY[1]);
+        (tx - DISC.0).hypot(ty - DISC.1) < DISC.2 + margin * PLANE_DEPTH / FOCAL
+    };
+    let field = engine.field();
+    let (w, h) = (field.width, field.height);
+    let (mut estimated, mut outside, mut interior, mut interior_estimated) = (0, 0, 0, 0);
+    let (mut depth_err, mut v_err) = (Vec::new(), Vec::new());
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let has = field.confidence[i] > 0.0;
+            if on_disc(x, y, -2.0) {
+                interior += 1;
+                interior_estimated += usize::from(has);
+            }
+            if !has {
+                continue;
+            }
+            estimated += 1;
+            if !on_disc(x, y, 1.5) {
+                outside += 1;
+                continue;
+            }
+            depth_err.push((f64::from(field.depth[i]) - PLANE_DEPTH).abs());
+            v_err.push(
+                (f64::from(field.velocity[i][0]) - VELOCITY[0])
+                    .abs()
+                    .max((f64::from(field.velocity[i][1]) - VELOCITY[1]).abs()),
+            );
+        }
+    }
+    let stats = engine.stats();
+    eprintln!(
+        "estimated {estimated} of {} rays, {outside} off the skin, {interior_estimated} of {interior} skin rays",
+        w * h
+    );
+    assert_eq!(stats.occupied_rays, estimated, "every occupied ray has an estimate");
+    assert!(estimated < w * h / 3, "a fraction of the rays: {estimated} of {}", w * h);
+    assert!(outside * 50 < estimated, "{outside} of {estimated} estimates off the skin");
+    assert!(interior_estimated * 10 > interior * 9, "{interior_estimated} of {interior} skin rays estimated");
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let (d, v) = (median(&mut depth_err), median(&mut v_err));
+    assert!(d < 0.1 && v < 0.01, "median depth error {d}, velocity error {v}");
+    // The skin map of the frame estimated is what the reference camera saw there.
+    let x = (0..w).find(|&x| on_disc(x, h / 2, -2.0)).expect("the disc crosses the middle row");
+    assert!(engine.skin_at(0, x, h / 2).is_some_and(|s| s > 0.0));
+    assert!(engine.skin_at(0, w, 0).is_none(), "outside the image");
 }

@@ -260,6 +260,22 @@ impl Recording {
         self.view_lengths().iter().sum()
     }
 
+    /// The views of a frame set buffer filled by [`Recording::read_frame_into`], in rig
+    /// order (a shorter buffer gives only the views it holds).
+    pub fn views<'a>(&self, frame_set: &'a [u8]) -> Vec<&'a [u8]> {
+        let mut rest = frame_set;
+        let mut views = Vec::with_capacity(self.rig.cameras.len());
+        for len in self.view_lengths() {
+            if rest.len() < len {
+                break;
+            }
+            let (view, tail) = rest.split_at(len);
+            views.push(view);
+            rest = tail;
+        }
+        views
+    }
+
     fn view_lengths(&self) -> Vec<usize> {
         self.rig.cameras.iter().map(|c| c.width as usize * c.height as usize * 3).collect()
     }
@@ -465,6 +481,10 @@ mod tests {
         let view = (W * H * 3) as usize;
         assert_eq!(&buf[..3], &[2, 0, 7], "left view first");
         assert_eq!(&buf[view..view + 3], &[2, 1, 7], "then right");
+        let views = rec.views(&buf);
+        assert_eq!(views.len(), 2);
+        assert_eq!((views[0].len(), &views[1][..3]), (view, &[2u8, 1, 7][..]));
+        assert_eq!(rec.views(&buf[..view + 1]).len(), 1, "a short buffer gives the views it holds");
         // Not looped, the end is an error; looped, time keeps increasing.
         assert!(rec.read_frame_into(3, false, &mut buf).is_err());
         let info = rec.read_frame_into(4, true, &mut buf).expect("loops");
