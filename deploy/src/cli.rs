@@ -150,6 +150,9 @@ struct BenchFlowArgs {
     /// With `--recording`: estimate only the first N frames.
     #[arg(long, requires = "recording")]
     frames: Option<usize>,
+    /// With `--recording`: skip the dense full-resolution baseline (a few seconds per frame).
+    #[arg(long, requires = "recording")]
+    no_baseline: bool,
     /// `multiview` or `fb`.
     #[arg(long, default_value = "multiview")]
     layout: Layout,
@@ -499,7 +502,7 @@ fn clear_output(out: &Path, force: bool) -> Result<()> {
 
 fn bench_flow_recording(dir: &Path, args: &BenchFlowArgs) -> Result<()> {
     let e = &args.engine;
-    let r = bench_recording(dir, e.variant, e.particles_per_ray, &e.overrides, args.frames)?;
+    let r = bench_recording(dir, e.variant, e.particles_per_ray, &e.overrides, args.frames, !args.no_baseline)?;
     if args.json {
         out!("{}", serde_json::to_string(&r)?);
         return Ok(());
@@ -527,6 +530,9 @@ fn bench_flow_recording(dir: &Path, args: &BenchFlowArgs) -> Result<()> {
         "  face detection      {:8.1} ms per round, off the hot path, not counted",
         r.face_detection_seconds_per_round * 1e3
     );
+    if let (Some(d), Some(x)) = (r.dense_seconds_per_frame, r.speedup_vs_dense) {
+        out!("  baseline: dense     {:8.0} ms per frame (every ray, full resolution): {x:.0}x faster", d * 1e3);
+    }
     if let (Some(a), Some(s)) = (r.mask_agreement, r.on_skin_objects) {
         out!("  on head or hands    {:8.2} % of estimated rays", s * 100.0);
         out!("  same object in all views {:5.2} % of those", a * 100.0);

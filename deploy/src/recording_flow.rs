@@ -115,7 +115,12 @@ pub struct RecordingFlowReport {
     pub mask_agreement: Option<f64>,
     /// Share of estimated rays whose reference pixel is on head or hands (needs masks).
     pub on_skin_objects: Option<f64>,
-    /// The engine configuration.
+    /// Dense coverage at full resolution (every ray, the Middlebury configuration) on the
+    /// first frames of the same recording, seconds per estimate: the baseline of this run.
+    pub dense_seconds_per_frame: Option<f64>,
+    /// `dense_seconds_per_frame / seconds_per_frame`.
+    pub speedup_vs_dense: Option<f64>,
+    /// The engine configuration's skin weight.
     pub skin_weight: f32,
     /// Engine worker threads.
     pub threads: usize,
@@ -128,6 +133,7 @@ pub fn bench_recording(
     particles_per_ray: Option<usize>,
     overrides: &[String],
     max_frames: Option<usize>,
+    baseline: bool,
 ) -> Result<RecordingFlowReport> {
     let rec = Recording::open(dir)?;
     let rig = rec.rig().clone();
@@ -179,6 +185,7 @@ pub fn bench_recording(
     }
     let n = times.len().max(1) as f64;
     let total: f64 = times.iter().sum();
+    let dense = if baseline { Some(dense_seconds_per_frame(&rec, reference, &mut buf)?) } else { None };
     let stats = adapter.stats();
     let cam = &rig.cameras[reference];
     Ok(RecordingFlowReport {
@@ -197,9 +204,37 @@ pub fn bench_recording(
         face_detection_seconds_per_round: stats.seconds / stats.rounds.max(1) as f64,
         mask_agreement: masks.as_ref().map(|_| agreement.agreement()),
         on_skin_objects: masks.as_ref().map(|_| agreement.on_skin()),
+        dense_seconds_per_frame: dense,
+        speedup_vs_dense: dense.map(|d| d / (total / n)),
         skin_weight,
         threads: rayon::current_num_threads(),
     })
+}
+
+/// Frames of the dense baseline: two estimates with forwards/backwards.
+const BASELINE_FRAMES: usize = 3;
+
+/// Seconds per estimate of the default dense engine (full resolution, every ray,
+/// forwards/backwards) on the first frames of the recording.
+fn dense_seconds_per_frame(rec: &Recording, reference: usize, buf: &mut [u8]) -> Result<f64> {
+    let config = EngineConfig {
+        temporal: Temporal::ForwardsBackwards,
+        depth_range: RECORDING_DEPTH_RANGE_M,
+        speed_bound: RECORDING_SPEED_BOUND_M_S / recording_fps(rec).max(1.0) as f32,
+        ..EngineConfig::default()
+    };
+    let mut engine = SceneFlowEngine::new(config, rec.rig().cameras.clone(), reference)?;
+    let mut times = Vec::new();
+    for k in 0..BASELINE_FRAMES.min(rec.len()) {
+        rec.read_frame_into(k as u64, false, buf)?;
+        if engine.push_frame(&rec.views(buf))?.is_some() {
+            times.push(engine.stats().seconds);
+        }
+    }
+    if engine.flush().is_some() {
+        times.push(engine.stats().seconds);
+    }
+    Ok(times.iter().sum::<f64>() / times.len().max(1) as f64)
 }
 
 /// Object-id masks of a rendered recording (`masks/<camera>/<image name>`).

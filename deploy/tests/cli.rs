@@ -439,7 +439,7 @@ fn bench_flow_on_a_recording_reports_frames_per_second() {
     let out = tmp.path().join("rec");
     let r = handflow(&["render", "--preset", "signer-3cam", "--frames", "5", "--out", arg(&out)]);
     assert!(r.status.success(), "{}", describe(&r));
-    let r = handflow(&["bench", "flow", "--recording", arg(&out), "--json"]);
+    let r = handflow(&["bench", "flow", "--recording", arg(&out), "--json", "--no-baseline"]);
     assert!(r.status.success(), "{}", describe(&r));
     let v: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
     assert_eq!(v["frames"].as_u64(), Some(4), "frames 1-3 with t+1, the last one flushed: {v}");
@@ -448,6 +448,7 @@ fn bench_flow_on_a_recording_reports_frames_per_second() {
     assert!(occupied > 0.005 && occupied < 0.2, "head and hands are a few percent of the view: {v}");
     assert!(v["mask_agreement"].as_f64().unwrap_or(0.0) > 0.8, "{v}");
     assert_eq!(v["reference"].as_str(), Some("cam1"), "the frontal camera");
+    assert!(v["speedup_vs_dense"].is_null(), "no baseline asked for");
     // A bad override is named; a recording with one frame is refused.
     check_failure(
         &handflow(&["bench", "flow", "--recording", arg(&out), "--set", "finest_level=7"]),

@@ -5,14 +5,20 @@
 use handflow_protocol::Camera;
 
 use crate::face_fusion::fuse_faces;
-use crate::faces::FaceDetector;
+use crate::faces::{FaceBox, FaceDetector, Region};
 use crate::skin::SkinModel;
 
 /// Adaptation rate per detection (default of [`SkinAdapter::new`]): a face seen a handful
 /// of times dominates the generic prior, one odd frame does not.
 pub const DEFAULT_ADAPTATION_RATE: f32 = 0.3;
-/// Detect faces every this many frames by default (6 per second at 30 fps).
-pub const DEFAULT_DETECT_EVERY: u64 = 5;
+/// Detect faces every this many frames by default (3 per second at 30 fps).
+pub const DEFAULT_DETECT_EVERY: u64 = 10;
+/// Once a camera's face is known, search only a square this many face sizes wide around it
+/// (a 640x480 frame costs about 200 ms, such a region about 10).
+pub const SEARCH_SCALE: f32 = 2.5;
+/// Every this many rounds every camera is searched whole, so a face that moved far or a
+/// second person is found again.
+pub const FULL_SEARCH_EVERY: u64 = 10;
 
 /// What adaptation has done so far.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -36,6 +42,8 @@ pub struct SkinAdapter {
     models: Vec<SkinModel>,
     detect_every: u64,
     stats: AdaptationStats,
+    /// Per camera: the face used at the last round, where the next search looks.
+    last: Vec<Option<FaceBox>>,
 }
 
 impl SkinAdapter {
@@ -51,6 +59,7 @@ impl SkinAdapter {
                 lent: vec![0; cameras.len()],
                 ..AdaptationStats::default()
             },
+            last: vec![None; cameras.len()],
         })
     }
 
@@ -81,9 +90,17 @@ impl SkinAdapter {
     /// Detects faces in every view and adapts now. Returns whether any model changed.
     pub fn adapt_now(&mut self, views: &[&[u8]]) -> bool {
         let started = std::time::Instant::now();
-        let found: Vec<_> =
-            views.iter().zip(&self.cameras).map(|(v, c)| self.detector.detect(v, c.width, c.height)).collect();
+        let full = self.stats.rounds % FULL_SEARCH_EVERY == 0;
+        let mut found = Vec::with_capacity(self.cameras.len());
+        for ((view, cam), last) in views.iter().zip(&self.cameras).zip(&self.last) {
+            let region = match last {
+                Some(face) if !full => Region::around(face, SEARCH_SCALE, cam.width, cam.height),
+                _ => Region { x: 0, y: 0, width: cam.width, height: cam.height },
+            };
+            found.push(self.detector.detect_in(view, cam.width, cam.height, region));
+        }
         let fused = fuse_faces(&self.cameras, &found);
+        self.last.clone_from(&fused.boxes);
         self.stats.rounds += 1;
         self.stats.rejected += fused.rejected as u64;
         let mut changed = false;
