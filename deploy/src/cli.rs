@@ -12,6 +12,8 @@ use serde_json::json;
 use crate::flow_eval::{engine_config, load_problem, run_once, EvalOptions, RunResult};
 use crate::middlebury::{write_maps, Layout};
 use crate::recording_flow::bench_recording;
+use crate::track::{track_recording, TrackOptions};
+use crate::track_eval::{evaluate_tracks, read_tracks};
 use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec, PRESETS};
 
 /// Where the demo looks for the built-in scene, relative to the working directory.
@@ -37,6 +39,44 @@ enum Command {
     Bench(BenchCommand),
     /// Ray-trace a synthetic signer scene into a recording with exact ground truth.
     Render(RenderArgs),
+    /// 3D trajectories of head and hands from a recording (JSON Lines, or CSV).
+    Track(TrackArgs),
+    /// Draw the last positions of each trajectory on every camera's images.
+    Overlay(OverlayArgs),
+}
+
+#[derive(Args, Debug)]
+struct OverlayArgs {
+    /// Recording folder.
+    #[arg(long)]
+    recording: PathBuf,
+    /// Trajectory file (JSON Lines, as `handflow track` writes).
+    #[arg(long)]
+    tracks: PathBuf,
+    /// Output folder: one image folder per camera.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Args, Debug)]
+struct TrackArgs {
+    /// Recording folder (rig.toml, frames.csv, one image folder per camera).
+    #[arg(long)]
+    recording: PathBuf,
+    /// Output file (default: standard output).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write CSV (frame, t, then per object x y z vx vy vz confidence state) instead of JSON Lines.
+    #[arg(long)]
+    csv: bool,
+    /// Track only the first N frames.
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Keep cluster centres on the visible surface instead of the objects' middles.
+    #[arg(long)]
+    no_centre_correction: bool,
+    #[command(flatten)]
+    engine: EngineArgs,
 }
 
 #[derive(Args, Debug)]
@@ -65,6 +105,23 @@ enum EvalCommand {
     Middlebury(MiddleburyArgs),
     /// Skin decision against a recording's object masks, generic prior and adapted model.
     Skin(SkinArgs),
+    /// Trajectories against a recording's truth.json (EVALUATION.md section 2).
+    Tracks(EvalTracksArgs),
+}
+
+#[derive(Args, Debug)]
+struct EvalTracksArgs {
+    /// Recording folder with truth.json.
+    #[arg(long)]
+    recording: PathBuf,
+    /// Trajectory file (JSON Lines, as `handflow track` writes); default: track now.
+    #[arg(long)]
+    tracks: Option<PathBuf>,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
+    #[command(flatten)]
+    engine: EngineArgs,
 }
 
 #[derive(Args, Debug)]
@@ -230,6 +287,9 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(BenchCommand::Accuracy(args))) => bench_accuracy(&args),
         Some(Command::Bench(BenchCommand::Render(args))) => bench_render(&args),
         Some(Command::Render(args)) => render(&args),
+        Some(Command::Track(args)) => track(&args),
+        Some(Command::Overlay(args)) => overlay(&args),
+        Some(Command::Eval(EvalCommand::Tracks(args))) => eval_tracks(&args),
     }
 }
 
@@ -478,6 +538,138 @@ fn render(args: &RenderArgs) -> Result<()> {
         args.out.display(),
         started.elapsed().as_secs_f64()
     );
+    Ok(())
+}
+
+fn track_options(engine: &EngineArgs, frames: Option<usize>, centre_correction: bool) -> TrackOptions {
+    TrackOptions {
+        variant: engine.variant,
+        particles_per_ray: engine.particles_per_ray,
+        overrides: engine.overrides.clone(),
+        max_frames: frames,
+        centre_correction,
+    }
+}
+
+/// A one-line progress display on stderr when it is a terminal; nothing otherwise.
+fn progress(done: usize, total: usize) {
+    use std::io::Write as _;
+    if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        let width = 30;
+        let filled = (done * width).checked_div(total).unwrap_or(width).min(width);
+        let mut err = std::io::stderr();
+        let _ = write!(err, "\r[{}{}] {done}/{total} frames", "#".repeat(filled), " ".repeat(width - filled));
+        if done >= total {
+            let _ = writeln!(err);
+        }
+    }
+}
+
+fn track(args: &TrackArgs) -> Result<()> {
+    use std::io::Write as _;
+    let options = track_options(&args.engine, args.frames, !args.no_centre_correction);
+    let mut out: Box<dyn std::io::Write> = match &args.out {
+        Some(path) => Box::new(std::io::BufWriter::new(
+            std::fs::File::create(path).with_context(|| format!("creating `{}`", path.display()))?,
+        )),
+        None => Box::new(std::io::stdout().lock()),
+    };
+    if args.csv {
+        let mut header = String::from("frame,t");
+        for name in handflow_cluster::tracks::OBJECTS {
+            for field in ["x", "y", "z", "vx", "vy", "vz", "confidence", "state"] {
+                header.push_str(&format!(",{name}_{field}"));
+            }
+        }
+        writeln!(out, "{header}")?;
+    }
+    let summary = track_recording(&args.recording, &options, |record, done, total| {
+        if args.csv {
+            let mut line = format!("{},{}", record.frame, record.t);
+            for name in handflow_cluster::tracks::OBJECTS {
+                let o = record.objects.get(name).context("record without an object")?;
+                line.push_str(&format!(
+                    ",{},{},{},{},{},{},{},{}",
+                    o.pos[0],
+                    o.pos[1],
+                    o.pos[2],
+                    o.vel[0],
+                    o.vel[1],
+                    o.vel[2],
+                    o.confidence,
+                    serde_json::to_value(o.state)?.as_str().unwrap_or("lost")
+                ));
+            }
+            writeln!(out, "{line}")?;
+        } else {
+            serde_json::to_writer(&mut out, record)?;
+            writeln!(out)?;
+        }
+        progress(done, total);
+        Ok(())
+    })?;
+    out.flush()?;
+    tracing::info!(
+        frames = summary.frames,
+        fps = summary.frames_per_second,
+        reinitialisations = summary.reinitialisations,
+        "tracked"
+    );
+    if let Some(path) = &args.out {
+        eprintln!(
+            "tracked {} frames of `{}` at {:.1} frames per second into `{}`",
+            summary.frames,
+            args.recording.display(),
+            summary.frames_per_second,
+            path.display()
+        );
+    }
+    Ok(())
+}
+
+fn overlay(args: &OverlayArgs) -> Result<()> {
+    let rec = handflow_ingest::Recording::open(&args.recording)?;
+    let records = read_tracks(&args.tracks)?;
+    let written = crate::overlay::write_overlays(&rec, &records, &args.out)?;
+    out!("wrote {written} images into `{}` (one folder per camera)", args.out.display());
+    Ok(())
+}
+
+fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
+    let rec = handflow_ingest::Recording::open(&args.recording)?;
+    let records = match &args.tracks {
+        Some(path) => read_tracks(path)?,
+        None => {
+            let mut records = Vec::new();
+            let options = track_options(&args.engine, None, true);
+            track_recording(&args.recording, &options, |r, done, total| {
+                records.push(r.clone());
+                progress(done, total);
+                Ok(())
+            })?;
+            records
+        }
+    };
+    let s = evaluate_tracks(&rec, &records)?;
+    if args.json {
+        out!("{}", serde_json::to_string(&s)?);
+        return Ok(());
+    }
+    out!(
+        "trajectories on `{}`: {} frames, {} identity switches",
+        args.recording.display(),
+        s.frames,
+        s.identity_switches
+    );
+    for (name, o) in [("head", &s.head), ("left_hand", &s.left_hand), ("right_hand", &s.right_hand)] {
+        out!(
+            "  {name:<11} agreement {:6.1} %  rms {:.3} / {:.3} palm widths (x / y)  3D rmse {:.3} m",
+            o.agreement * 100.0,
+            o.rms_palm_x,
+            o.rms_palm_y,
+            o.rmse_3d_m
+        );
+    }
     Ok(())
 }
 

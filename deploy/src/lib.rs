@@ -7,5 +7,8 @@
 pub mod cli;
 pub mod flow_eval;
 pub mod middlebury;
+pub mod overlay;
 pub mod recording_flow;
 pub mod skin_eval;
+pub mod track;
+pub mod track_eval;

@@ -456,3 +456,62 @@ fn bench_flow_on_a_recording_reports_frames_per_second() {
     );
     check_failure(&handflow(&["bench", "flow", "--recording", arg(&out), "--frames", "1"]), &["at least 2 frames"]);
 }
+
+/// `handflow track` writes one JSON object per frame with the documented schema; `eval
+/// tracks` scores it (and names a malformed line); `overlay` draws it; `--csv` has a header.
+#[test]
+fn track_writes_json_lines_that_eval_and_overlay_read() {
+    let tmp = tempfile::tempdir().unwrap();
+    let rec = tmp.path().join("rec");
+    let r = handflow(&["render", "--preset", "signer-3cam", "--frames", "8", "--out", arg(&rec)]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let tracks = tmp.path().join("tracks.jsonl");
+    let r = handflow(&["track", "--recording", arg(&rec), "--out", arg(&tracks)]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let text = std::fs::read_to_string(&tracks).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 7, "every frame but the first (no t-1)");
+    for (i, line) in lines.iter().enumerate() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(v["frame"].as_u64(), Some(i as u64 + 1));
+        assert!((v["t"].as_f64().unwrap() - (i + 1) as f64 / 30.0).abs() < 1e-5, "timestamps of frames.csv");
+        let objects = v["objects"].as_object().unwrap();
+        assert_eq!(objects.keys().collect::<Vec<_>>(), ["head", "left_hand", "right_hand"]);
+        for (name, o) in objects {
+            assert_eq!(o["pos"].as_array().map(Vec::len), Some(3), "{name}");
+            assert_eq!(o["vel"].as_array().map(Vec::len), Some(3), "{name}");
+            assert!(o["pos"].as_array().unwrap().iter().all(|x| x.as_f64().is_some_and(f64::is_finite)));
+            let c = o["confidence"].as_f64().unwrap();
+            assert!((0.0..=1.0).contains(&c), "{name}: {c}");
+            assert!(["tracked", "predicted", "lost"].contains(&o["state"].as_str().unwrap()));
+        }
+    }
+    let r = handflow(&["eval", "tracks", "--recording", arg(&rec), "--tracks", arg(&tracks), "--json"]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let v: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+    assert_eq!(v["frames"].as_u64(), Some(7));
+    for name in ["head", "left_hand", "right_hand"] {
+        for key in ["agreement", "rms_palm_x", "rms_palm_y", "rmse_3d_m"] {
+            assert!(v[name][key].as_f64().is_some_and(f64::is_finite), "{name}.{key}: {v}");
+        }
+    }
+    assert!(v["identity_switches"].as_u64().is_some());
+    assert!(v["head"]["rmse_3d_m"].as_f64().unwrap() < 0.1, "the head is found: {v}");
+
+    let overlays = tmp.path().join("overlay");
+    let r = handflow(&["overlay", "--recording", arg(&rec), "--tracks", arg(&tracks), "--out", arg(&overlays)]);
+    assert!(r.status.success(), "{}", describe(&r));
+    assert!(overlays.join("cam2/000007.png").is_file());
+
+    let csv = tmp.path().join("tracks.csv");
+    let r = handflow(&["track", "--recording", arg(&rec), "--out", arg(&csv), "--csv", "--frames", "4"]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let text = std::fs::read_to_string(&csv).unwrap();
+    assert!(text.starts_with("frame,t,head_x,head_y,head_z,head_vx"));
+    assert_eq!(text.lines().count(), 1 + 3);
+
+    let bad = tmp.path().join("bad.jsonl");
+    std::fs::write(&bad, format!("{}\n{{\"frame\": 2}}\n", lines[0])).unwrap();
+    let r = handflow(&["eval", "tracks", "--recording", arg(&rec), "--tracks", arg(&bad)]);
+    check_failure(&r, &["bad.jsonl", "line 2"]);
+}

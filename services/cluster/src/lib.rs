@@ -1,11 +1,14 @@
 //! handflow's clustering stage: grouping weighted scene points in the 6D space of position
 //! and velocity.
 //!
-//! For now this holds the weighted moments every clustering step needs (mean and full
-//! covariance of a weighted 6D point set, velocity scaled into position units); the EM
-//! mixture and the labelling build on it.
+//! [`em`] fits a mixture of full-covariance Gaussians by expectation maximisation to a
+//! frame's weighted scene points; [`tracks`] labels the clusters as head, left hand and
+//! right hand and predicts them with a constant-velocity model.
 
 #![cfg_attr(test, allow(clippy::unwrap_used))]
+
+pub mod em;
+pub mod tracks;
 
 use nalgebra::{Matrix6, Vector3, Vector6};
 
@@ -14,7 +17,7 @@ use nalgebra::{Matrix6, Vector3, Vector6};
 pub struct WeightedPoint {
     /// World position, metres.
     pub position: Vector3<f64>,
-    /// World velocity, metres per frame.
+    /// World velocity, metres per second.
     pub velocity: Vector3<f64>,
     /// Non-negative weight.
     pub weight: f64,
@@ -22,7 +25,7 @@ pub struct WeightedPoint {
 
 impl WeightedPoint {
     /// The point in the 6D clustering space: velocity multiplied by `velocity_scale` (in
-    /// frames) so that both halves are lengths and one metric compares them.
+    /// seconds) so that both halves are lengths and one metric compares them.
     pub fn feature(&self, velocity_scale: f64) -> Vector6<f64> {
         let v = self.velocity * velocity_scale;
         Vector6::new(self.position.x, self.position.y, self.position.z, v.x, v.y, v.z)

@@ -1,0 +1,566 @@
+//! Expectation maximisation of a Gaussian mixture with full covariances in the 6D space of
+//! position and scaled velocity (section 4.2), on weighted points.
+
+use nalgebra::{Cholesky, Matrix6, Vector3, Vector6};
+
+use crate::WeightedPoint;
+
+/// Parameters of the EM fit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EmConfig {
+    /// Iterations at most (default 25).
+    pub max_iterations: usize,
+    /// Stop when the mean log-likelihood per unit weight changes less than this (default 1e-4).
+    pub tolerance: f64,
+    /// Seconds: velocity (m/s) times this becomes metres (default 0.1). A hand moving 1 m/s
+    /// is then as far from a still one as 10 cm of position: hands close together are about
+    /// that far apart and signs move them at 0.5 to 2 m/s, so both halves count alike.
+    pub velocity_scale: f64,
+    /// Points used at most (default 8000): larger sets are subsampled in proportion to their
+    /// weights (systematic resampling), which keeps every cluster's share of the weight and
+    /// bounds the time per frame.
+    pub max_points: usize,
+    /// Standard deviation added to every dimension's variance, metres in the scaled space
+    /// (default 0.01): covariances never become singular, even for a cluster of one point.
+    pub min_std: f64,
+    /// Seed of the subsampling offset (default 0).
+    pub seed: u64,
+    /// Model points no Gaussian explains with a uniform density over the points' bounding
+    /// box (default true): false skin on the wall or a stray depth must not drag a head or
+    /// hand cluster metres away.
+    pub outliers: bool,
+}
+
+impl Default for EmConfig {
+    fn default() -> Self {
+        Self {
+            max_iterations: 25,
+            tolerance: 1e-4,
+            velocity_scale: 0.1,
+            max_points: 8000,
+            min_std: 0.01,
+            seed: 0,
+            outliers: true,
+        }
+    }
+}
+
+/// One fitted component, in the caller's units.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Component {
+    /// Mean position, metres.
+    pub position: Vector3<f64>,
+    /// Mean velocity, metres per second.
+    pub velocity: Vector3<f64>,
+    /// Covariance in the scaled 6D space (position block in square metres).
+    pub covariance: Matrix6<f64>,
+    /// Mixing proportion (the components' sum to 1).
+    pub mixing: f64,
+    /// Weight of the points it explains, in the caller's weight units.
+    pub mass: f64,
+    /// Whether it ended explaining (almost) nothing; its mean is then where it started.
+    pub empty: bool,
+}
+
+/// The result of a fit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EmFit {
+    /// One per initial mean, in the same order.
+    pub components: Vec<Component>,
+    /// Iterations run.
+    pub iterations: usize,
+    /// Mean log-likelihood per unit weight at the end.
+    pub log_likelihood: f64,
+    /// Points used (after subsampling and dropping unusable ones).
+    pub points_used: usize,
+    /// Share of the weight the outlier class took (0 without it): the components' masses and
+    /// this share of the total weight add up to the total.
+    pub outlier_share: f64,
+}
+
+/// A component's share of the total weight under which it counts as empty.
+const EMPTY_SHARE: f64 = 1e-6;
+
+/// Fits one Gaussian per initial mean (position m, velocity m/s) to the weighted points.
+/// `None` when no point is usable (finite, positive weight) or no initial mean is given.
+pub fn fit_mixture(
+    points: &[WeightedPoint],
+    initial: &[(Vector3<f64>, Vector3<f64>)],
+    config: &EmConfig,
+) -> Option<EmFit> {
+    let s = config.velocity_scale;
+    let usable: Vec<&WeightedPoint> = points
+        .iter()
+        .filter(|p| {
+            p.weight > 0.0 && p.weight.is_finite() && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
+        })
+        .collect();
+    if usable.is_empty() || initial.is_empty() {
+        return None;
+    }
+    let total: f64 = usable.iter().map(|p| p.weight).sum();
+    let (features, weights) = subsample(&usable, total, s, config.max_points.max(1), config.seed);
+    let wsum: f64 = weights.iter().sum();
+    let k = initial.len();
+    let floor = config.min_std * config.min_std;
+    // A broad start: every dimension with the data's mean positional variance.
+    let mean_all = features.iter().zip(&weights).fold(Vector6::zeros(), |a, (f, w)| a + f * *w) / wsum;
+    let spread = features
+        .iter()
+        .zip(&weights)
+        .map(|(f, w)| w * (0..3).map(|d| (f[d] - mean_all[d]).powi(2)).sum::<f64>() / 3.0)
+        .sum::<f64>()
+        / wsum;
+    let start_cov = Matrix6::identity() * (spread + floor);
+    let start_means: Vec<Vector6<f64>> =
+        initial.iter().map(|(p, v)| Vector6::new(p.x, p.y, p.z, v.x * s, v.y * s, v.z * s)).collect();
+    let mut means = start_means.clone();
+    let mut covs = vec![start_cov; k];
+    let mut mixing = vec![1.0 / k as f64; k];
+    let mut masses = vec![0.0; k];
+    let mut empty = vec![false; k];
+    let mut resp = vec![0.0; features.len() * k];
+    // Uniform outlier density over the bounding box (each side at least 10 cm).
+    let log_volume: f64 = (0..6)
+        .map(|d| {
+            let (lo, hi) =
+                features.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), f| (a.min(f[d]), b.max(f[d])));
+            (hi - lo).max(0.1).ln()
+        })
+        .sum();
+    let mut outlier_share: f64 = if config.outliers { 0.05 } else { 0.0 };
+    let mut unexplained = 0.0;
+    let mut previous = f64::NEG_INFINITY;
+    let mut log_likelihood = f64::NEG_INFINITY;
+    let mut iterations = 0;
+    for _ in 0..config.max_iterations.max(1) {
+        iterations += 1;
+        // E-step in the log domain.
+        let factors: Vec<(Cholesky<f64, nalgebra::Const<6>>, f64)> =
+            covs.iter().map(|c| robust_cholesky(c, floor)).collect();
+        let mut ll = 0.0;
+        for (i, f) in features.iter().enumerate() {
+            let row = &mut resp[i * k..(i + 1) * k];
+            let mut best = f64::NEG_INFINITY;
+            for j in 0..k {
+                let (chol, log_det) = &factors[j];
+                let d = f - means[j];
+                let y = chol.l().solve_lower_triangular(&d).unwrap_or_else(|| d * 1e6);
+                let l = mixing[j].max(1e-300).ln()
+                    - 0.5 * (y.norm_squared() + log_det + 6.0 * (2.0 * std::f64::consts::PI).ln());
+                row[j] = l;
+                best = best.max(l);
+            }
+            let log_out = if config.outliers { outlier_share.ln() - log_volume } else { f64::NEG_INFINITY };
+            let best = best.max(log_out);
+            let sum: f64 = row.iter().map(|l| (l - best).exp()).sum::<f64>() + (log_out - best).exp();
+            let log_norm = best + sum.ln();
+            for r in row.iter_mut() {
+                *r = (*r - log_norm).exp();
+            }
+            ll += weights[i] * log_norm;
+        }
+        log_likelihood = ll / wsum;
+        // M-step: one pass accumulating each component's weight, first and second moments
+        // (f64 keeps the centred second moment exact enough at metre scale).
+        let mut acc = vec![(0.0f64, Vector6::<f64>::zeros(), Matrix6::<f64>::zeros()); k];
+        for (i, f) in features.iter().enumerate() {
+            let outer = f * f.transpose();
+            for (j, (m, first, second)) in acc.iter_mut().enumerate() {
+                let w = weights[i] * resp[i * k + j];
+                *m += w;
+                *first += f * w;
+                *second += outer * w;
+            }
+        }
+        for (j, (mass, first, second)) in acc.into_iter().enumerate() {
+            masses[j] = mass;
+            if mass <= EMPTY_SHARE * wsum {
+                // Nothing to explain: stay where it started, broad, able to recapture points.
+                empty[j] = true;
+                means[j] = start_means[j];
+                covs[j] = start_cov;
+                mixing[j] = EMPTY_SHARE;
+                continue;
+            }
+            empty[j] = false;
+            let mean = first / mass;
+            let cov = second / mass - mean * mean.transpose() + Matrix6::identity() * floor;
+            means[j] = mean;
+            covs[j] = 0.5 * (cov + cov.transpose());
+            mixing[j] = mass / wsum;
+        }
+        let explained: f64 = masses.iter().sum::<f64>() / wsum;
+        unexplained = (1.0 - explained).max(0.0);
+        if config.outliers {
+            // What the Gaussians leave is the outlier class's; bounded so that it can neither
+            // vanish nor swallow the scene.
+            outlier_share = (1.0 - explained).clamp(1e-3, 0.5);
+        }
+        let norm: f64 = mixing.iter().sum::<f64>() / (1.0 - outlier_share);
+        mixing.iter_mut().for_each(|m| *m /= norm);
+        if (log_likelihood - previous).abs() < config.tolerance {
+            break;
+        }
+        previous = log_likelihood;
+    }
+    // Masses in the caller's units (subsampling rescaled the weights).
+    let scale = total / wsum;
+    let components = (0..k)
+        .map(|j| Component {
+            position: Vector3::new(means[j][0], means[j][1], means[j][2]),
+            velocity: Vector3::new(means[j][3], means[j][4], means[j][5]) / s,
+            covariance: covs[j],
+            mixing: if empty[j] { 0.0 } else { mixing[j] },
+            mass: if empty[j] { 0.0 } else { masses[j] * scale },
+            empty: empty[j],
+        })
+        .collect::<Vec<_>>();
+    // Empty components report mixing 0: renormalise the others.
+    let live: f64 = components.iter().map(|c| c.mixing).sum();
+    let components = components
+        .into_iter()
+        .map(|c| Component { mixing: if live > 0.0 { c.mixing / live } else { 1.0 / k as f64 }, ..c })
+        .collect();
+    Some(EmFit {
+        components,
+        iterations,
+        log_likelihood: if log_likelihood.is_finite() { log_likelihood } else { f64::MIN },
+        points_used: features.len(),
+        outlier_share: if config.outliers { unexplained } else { 0.0 },
+    })
+}
+
+/// Cholesky factor and log-determinant, regularising the diagonal until it factors.
+fn robust_cholesky(c: &Matrix6<f64>, floor: f64) -> (Cholesky<f64, nalgebra::Const<6>>, f64) {
+    let mut m = *c;
+    let mut add = floor.max(1e-12);
+    loop {
+        if let Some(ch) = Cholesky::new(m) {
+            let log_det = 2.0 * ch.l().diagonal().iter().map(|d| d.ln()).sum::<f64>();
+            if log_det.is_finite() {
+                return (ch, log_det);
+            }
+        }
+        m = Matrix6::identity() * add + if m.iter().all(|v| v.is_finite()) { m } else { Matrix6::zeros() };
+        add *= 10.0;
+        if add > 1e6 {
+            let ch = Cholesky::new(Matrix6::identity());
+            if let Some(ch) = ch {
+                return (ch, 0.0);
+            }
+        }
+    }
+}
+
+/// The points as 6D features with weights; above `max` points, a systematic resample in
+/// proportion to weight, each kept point carrying `total / max`.
+fn subsample(
+    points: &[&WeightedPoint],
+    total: f64,
+    scale: f64,
+    max: usize,
+    seed: u64,
+) -> (Vec<Vector6<f64>>, Vec<f64>) {
+    if points.len() <= max {
+        return (points.iter().map(|p| p.feature(scale)).collect(), points.iter().map(|p| p.weight).collect());
+    }
+    let step = total / max as f64;
+    // A deterministic offset in [0, step) from the seed (splitmix64).
+    let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    let mut next = (z >> 11) as f64 / (1u64 << 53) as f64 * step;
+    let mut features = Vec::with_capacity(max);
+    let mut cumulative = 0.0;
+    for p in points {
+        cumulative += p.weight;
+        while next < cumulative && features.len() < max {
+            features.push(p.feature(scale));
+            next += step;
+        }
+    }
+    let weights = vec![step; features.len()];
+    (features, weights)
+}
+
+/// Initial means for a first frame without predictions: the top, bottom-left and
+/// bottom-right extremities of the scene (section 4.2). `up` is the world's up and `right`
+/// the direction that is right as the observer sees it. Top: the mean of the highest tenth
+/// of the weight; bottom-left and bottom-right: of the lowest and highest fifth along
+/// `right` among the lower half. `None` without usable points.
+pub fn extremity_means(
+    points: &[WeightedPoint],
+    up: Vector3<f64>,
+    right: Vector3<f64>,
+) -> Option<[(Vector3<f64>, Vector3<f64>); 3]> {
+    let usable: Vec<&WeightedPoint> = points
+        .iter()
+        .filter(|p| {
+            p.weight > 0.0 && p.weight.is_finite() && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
+        })
+        .collect();
+    if usable.is_empty() {
+        return None;
+    }
+    let mean_of = |set: &[&WeightedPoint]| {
+        let w: f64 = set.iter().map(|p| p.weight).sum();
+        let pos = set.iter().fold(Vector3::zeros(), |a, p| a + p.position * p.weight) / w;
+        let vel = set.iter().fold(Vector3::zeros(), |a, p| a + p.velocity * p.weight) / w;
+        (pos, vel)
+    };
+    let top = extreme(&usable, up, 0.1, true);
+    let lower = extreme(&usable, up, 0.5, false);
+    let left = extreme(&lower, right, 0.2, false);
+    let right_side = extreme(&lower, right, 0.2, true);
+    Some([mean_of(&top), mean_of(&left), mean_of(&right_side)])
+}
+
+/// The points holding `share` of the weight from the high (or low) end along `axis`.
+fn extreme<'a>(set: &[&'a WeightedPoint], axis: Vector3<f64>, share: f64, high: bool) -> Vec<&'a WeightedPoint> {
+    let mut sorted = set.to_vec();
+    sorted.sort_by(|a, b| {
+        let (x, y) = (a.position.dot(&axis), b.position.dot(&axis));
+        if high {
+            y.total_cmp(&x)
+        } else {
+            x.total_cmp(&y)
+        }
+    });
+    let total: f64 = sorted.iter().map(|p| p.weight).sum();
+    let mut acc = 0.0;
+    let mut out = Vec::new();
+    for p in sorted {
+        if acc >= share * total && !out.is_empty() {
+            break;
+        }
+        acc += p.weight;
+        out.push(p);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Deterministic standard normal draws (Box-Muller on a splitmix64 stream).
+    struct Normal(u64);
+    impl Normal {
+        fn uniform(&mut self) -> f64 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        }
+        fn sample(&mut self) -> f64 {
+            let (u, v) = (self.uniform().max(1e-12), self.uniform());
+            (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
+        }
+    }
+
+    /// `n` points around `pos`/`vel` with per-axis standard deviations `sp` (m) and `sv` (m/s).
+    fn blob(rng: &mut Normal, n: usize, pos: [f64; 3], vel: [f64; 3], sp: f64, sv: f64) -> Vec<WeightedPoint> {
+        (0..n)
+            .map(|i| WeightedPoint {
+                position: Vector3::new(
+                    pos[0] + sp * rng.sample(),
+                    pos[1] + sp * rng.sample(),
+                    pos[2] + sp * rng.sample(),
+                ),
+                velocity: Vector3::new(
+                    vel[0] + sv * rng.sample(),
+                    vel[1] + sv * rng.sample(),
+                    vel[2] + sv * rng.sample(),
+                ),
+                weight: 0.5 + (i % 3) as f64 * 0.5,
+            })
+            .collect()
+    }
+
+    fn signer(rng: &mut Normal, scale: usize) -> Vec<WeightedPoint> {
+        let mut pts = blob(rng, 2000 * scale, [0.0, 1.6, 0.0], [0.0, 0.0, 0.0], 0.04, 0.05);
+        pts.extend(blob(rng, 1000 * scale, [0.25, 1.1, 0.3], [1.0, 0.0, 0.0], 0.03, 0.1));
+        pts.extend(blob(rng, 1000 * scale, [-0.25, 1.1, 0.3], [-1.0, 0.0, 0.0], 0.03, 0.1));
+        pts
+    }
+
+    #[test]
+    fn recovers_a_known_mixture() {
+        let mut rng = Normal(1);
+        let pts = signer(&mut rng, 1);
+        let init = [
+            (Vector3::new(0.05, 1.55, 0.05), Vector3::zeros()),
+            (Vector3::new(0.2, 1.15, 0.25), Vector3::new(0.5, 0.0, 0.0)),
+            (Vector3::new(-0.3, 1.05, 0.35), Vector3::zeros()),
+        ];
+        let fit = fit_mixture(&pts, &init, &EmConfig::default()).unwrap();
+        let truth = [
+            ([0.0, 1.6, 0.0], [0.0; 3], 0.5, 0.04),
+            ([0.25, 1.1, 0.3], [1.0, 0.0, 0.0], 0.25, 0.03),
+            ([-0.25, 1.1, 0.3], [-1.0, 0.0, 0.0], 0.25, 0.03),
+        ];
+        for (c, (p, v, mix, sp)) in fit.components.iter().zip(truth) {
+            assert!((c.position - Vector3::from(p)).norm() < 0.01, "{:?}", c.position);
+            assert!((c.velocity - Vector3::from(v)).norm() < 0.05, "{:?}", c.velocity);
+            assert!((c.mixing - mix).abs() < 0.03, "{}", c.mixing);
+            // Position variance: the true one plus the documented floor.
+            let expected = sp * sp + 0.01f64.powi(2);
+            assert!((c.covariance[(0, 0)] / expected - 1.0).abs() < 0.2, "{} vs {expected}", c.covariance[(0, 0)]);
+            assert!(!c.empty);
+        }
+        let total: f64 = pts.iter().map(|p| p.weight).sum();
+        let mass: f64 = fit.components.iter().map(|c| c.mass).sum();
+        assert!((mass / total + fit.outlier_share - 1.0).abs() < 1e-9);
+        assert!(fit.outlier_share < 0.01, "clean data: {}", fit.outlier_share);
+    }
+
+    #[test]
+    fn clutter_far_from_the_clusters_goes_to_the_outlier_class() {
+        let mut rng = Normal(6);
+        let mut pts = signer(&mut rng, 1);
+        // A tenth of the weight on skin-coloured wall patches 3 m behind, and stray depths.
+        pts.extend(blob(&mut rng, 300, [0.4, 2.7, -3.3], [0.0; 3], 0.05, 0.05));
+        pts.extend(blob(&mut rng, 150, [0.0, 1.4, 1.2], [0.0; 3], 0.3, 0.5));
+        let init = [
+            (Vector3::new(0.0, 1.6, 0.0), Vector3::zeros()),
+            (Vector3::new(0.25, 1.1, 0.3), Vector3::zeros()),
+            (Vector3::new(-0.25, 1.1, 0.3), Vector3::zeros()),
+        ];
+        let fit = fit_mixture(&pts, &init, &EmConfig::default()).unwrap();
+        for (c, p) in fit.components.iter().zip([[0.0, 1.6, 0.0], [0.25, 1.1, 0.3], [-0.25, 1.1, 0.3]]) {
+            assert!((c.position - Vector3::from(p)).norm() < 0.015, "{:?}", c.position);
+        }
+        assert!(fit.outlier_share > 0.05, "{}", fit.outlier_share);
+        let without = fit_mixture(&pts, &init, &EmConfig { outliers: false, ..EmConfig::default() }).unwrap();
+        let worst = without
+            .components
+            .iter()
+            .zip([[0.0, 1.6, 0.0], [0.25, 1.1, 0.3], [-0.25, 1.1, 0.3]])
+            .map(|(c, p)| (c.position - Vector3::from(p)).norm())
+            .fold(0.0, f64::max);
+        assert!(worst > 0.05, "without the outlier class the clutter drags a cluster: {worst}");
+    }
+
+    #[test]
+    fn hands_in_one_place_moving_apart_are_two_clusters() {
+        let mut rng = Normal(2);
+        let mut pts = blob(&mut rng, 800, [0.0, 1.1, 0.3], [1.0, 0.0, 0.0], 0.03, 0.1);
+        pts.extend(blob(&mut rng, 800, [0.0, 1.1, 0.3], [-1.0, 0.0, 0.0], 0.03, 0.1));
+        let init = [
+            (Vector3::new(0.0, 1.1, 0.3), Vector3::new(0.5, 0.0, 0.0)),
+            (Vector3::new(0.0, 1.1, 0.3), Vector3::new(-0.5, 0.0, 0.0)),
+        ];
+        let fit = fit_mixture(&pts, &init, &EmConfig::default()).unwrap();
+        assert!((fit.components[0].velocity.x - 1.0).abs() < 0.05);
+        assert!((fit.components[1].velocity.x + 1.0).abs() < 0.05);
+    }
+
+    #[test]
+    fn weights_count() {
+        let p = |x: f64, w: f64| WeightedPoint {
+            position: Vector3::new(x, 0.0, 0.0),
+            velocity: Vector3::zeros(),
+            weight: w,
+        };
+        let init = [(Vector3::zeros(), Vector3::zeros())];
+        let fit = fit_mixture(&[p(0.0, 1.0), p(1.0, 3.0)], &init, &EmConfig { outliers: false, ..EmConfig::default() })
+            .unwrap();
+        assert!((fit.components[0].position.x - 0.75).abs() < 1e-9);
+        assert!((fit.components[0].mass - 4.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn degenerate_inputs_give_finite_answers() {
+        let cfg = EmConfig::default();
+        let init = [
+            (Vector3::zeros(), Vector3::zeros()),
+            (Vector3::new(5.0, 5.0, 5.0), Vector3::zeros()),
+            (Vector3::new(0.1, 0.0, 0.0), Vector3::zeros()),
+        ];
+        assert!(fit_mixture(&[], &init, &cfg).is_none());
+        let one = WeightedPoint { position: Vector3::new(0.1, 0.2, 0.3), velocity: Vector3::zeros(), weight: 1.0 };
+        let nan = WeightedPoint { position: Vector3::new(f64::NAN, 0.0, 0.0), ..one };
+        assert!(fit_mixture(&[nan], &init, &cfg).is_none());
+        for pts in [vec![one], vec![one; 50], vec![one, nan, WeightedPoint { weight: 0.0, ..one }]] {
+            let fit = fit_mixture(&pts, &init, &cfg).unwrap();
+            assert!(fit.log_likelihood.is_finite());
+            let mixing: f64 = fit.components.iter().map(|c| c.mixing).sum();
+            assert!((mixing - 1.0).abs() < 1e-9);
+            for c in &fit.components {
+                assert!(c.position.iter().chain(c.velocity.iter()).chain(c.covariance.iter()).all(|v| v.is_finite()));
+            }
+            assert!(fit.components[1].empty, "the far component explains nothing");
+            assert_eq!(fit.components[1].position, Vector3::new(5.0, 5.0, 5.0));
+        }
+    }
+
+    #[test]
+    fn subsampling_keeps_the_answer_and_the_total_weight() {
+        let mut rng = Normal(3);
+        let pts = signer(&mut rng, 25); // 100k points
+        let init = [
+            (Vector3::new(0.0, 1.6, 0.0), Vector3::zeros()),
+            (Vector3::new(0.25, 1.1, 0.3), Vector3::zeros()),
+            (Vector3::new(-0.25, 1.1, 0.3), Vector3::zeros()),
+        ];
+        let cfg = EmConfig::default();
+        let fit = fit_mixture(&pts, &init, &cfg).unwrap();
+        assert_eq!(fit.points_used, cfg.max_points);
+        for (c, p) in fit.components.iter().zip([[0.0, 1.6, 0.0], [0.25, 1.1, 0.3], [-0.25, 1.1, 0.3]]) {
+            assert!((c.position - Vector3::from(p)).norm() < 0.01);
+        }
+        let total: f64 = pts.iter().map(|p| p.weight).sum();
+        let mass: f64 = fit.components.iter().map(|c| c.mass).sum();
+        assert!((mass / total + fit.outlier_share - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn extremities_are_head_and_the_two_lower_sides() {
+        let mut rng = Normal(4);
+        let pts = signer(&mut rng, 1);
+        let [top, left, right] = extremity_means(&pts, Vector3::y(), Vector3::x()).unwrap();
+        assert!((top.0.y - 1.6).abs() < 0.1);
+        assert!(left.0.x < -0.15 && right.0.x > 0.15, "{left:?} {right:?}");
+        assert!(extremity_means(&[], Vector3::y(), Vector3::x()).is_none());
+    }
+
+    /// `cargo test --release -p handflow-cluster -- --ignored --nocapture`
+    #[test]
+    #[ignore]
+    fn time_per_fit_for_100k_points() {
+        let mut rng = Normal(5);
+        let pts = signer(&mut rng, 25);
+        let init = [
+            (Vector3::new(0.0, 1.6, 0.0), Vector3::zeros()),
+            (Vector3::new(0.25, 1.1, 0.3), Vector3::zeros()),
+            (Vector3::new(-0.25, 1.1, 0.3), Vector3::zeros()),
+        ];
+        let started = std::time::Instant::now();
+        let runs = 20;
+        let mut iterations = 0;
+        for _ in 0..runs {
+            iterations = fit_mixture(&pts, &init, &EmConfig::default()).unwrap().iterations;
+        }
+        let ms = started.elapsed().as_secs_f64() * 1e3 / runs as f64;
+        eprintln!("{ms:.2} ms per fit of 100k points ({iterations} iterations)");
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn any_small_set_fits_finitely(xs in proptest::collection::vec((-2.0f64..2.0, -1.0f64..1.0, 0.01f64..3.0), 1..50), c in -2.0f64..2.0) {
+            let pts: Vec<WeightedPoint> = xs.iter().map(|&(x, v, w)| WeightedPoint { position: Vector3::new(x, x * x, 1.0), velocity: Vector3::new(v, 0.0, 0.0), weight: w }).collect();
+            let init = [(Vector3::new(c, 0.0, 1.0), Vector3::zeros()), (Vector3::new(-c, 1.0, 1.0), Vector3::zeros()), (Vector3::new(0.0, 2.0, 1.0), Vector3::zeros())];
+            let fit = fit_mixture(&pts, &init, &EmConfig::default()).unwrap();
+            let mixing: f64 = fit.components.iter().map(|c| c.mixing).sum();
+            proptest::prop_assert!((mixing - 1.0).abs() < 1e-9);
+            for comp in &fit.components {
+                proptest::prop_assert!(comp.covariance.iter().all(|v| v.is_finite()));
+                proptest::prop_assert!((comp.covariance - comp.covariance.transpose()).norm() < 1e-9);
+                proptest::prop_assert!(comp.covariance.symmetric_eigen().eigenvalues.iter().all(|&e| e > 0.0));
+            }
+        }
+    }
+}

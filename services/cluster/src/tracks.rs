@@ -1,0 +1,373 @@
+//! Labelling and prediction: the three tracks (head, left hand, right hand) and the
+//! constant-velocity model that carries them from frame to frame (section 4.2), with the
+//! re-initialisation and per-track state the paper's section 6 asks for.
+
+use nalgebra::Vector3;
+
+use crate::em::{Component, EmFit};
+
+/// Track labels, in track order.
+pub const OBJECTS: [&str; 3] = ["head", "left_hand", "right_hand"];
+
+/// Tracking state of one object.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum State {
+    /// Measured this frame.
+    Tracked,
+    /// No cluster this frame: extrapolated by the constant-velocity model.
+    Predicted,
+    /// Unmeasured for too long; the position is the last one known.
+    Lost,
+}
+
+impl State {
+    /// The name used in trajectory files.
+    pub fn name(self) -> &'static str {
+        match self {
+            State::Tracked => "tracked",
+            State::Predicted => "predicted",
+            State::Lost => "lost",
+        }
+    }
+}
+
+/// Parameters of labelling and prediction.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrackerConfig {
+    /// Velocity weight of the assignment cost, seconds: cost = |position error| + this x
+    /// |velocity error| (default 0.1: two hands 10 cm apart moving at 1 m/s in opposite
+    /// directions differ as much by motion as by place).
+    pub velocity_weight_s: f64,
+    /// A track whose assigned cluster is farther than this from its prediction, metres, is
+    /// re-initialised on that cluster (default 0.2, about two palm widths: farther than a
+    /// hand moves unpredictably in one frame at 30 fps).
+    pub reinit_distance_m: f64,
+    /// A cluster holding less than this share of the frame's weight is no measurement
+    /// (default 0.02).
+    pub min_mass_share: f64,
+    /// Frames a track may be predicted before it is lost (default 15, half a second at 30 fps).
+    pub lost_after: u32,
+}
+
+impl Default for TrackerConfig {
+    fn default() -> Self {
+        Self { velocity_weight_s: 0.1, reinit_distance_m: 0.2, min_mass_share: 0.02, lost_after: 15 }
+    }
+}
+
+/// One object's estimate.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Track {
+    /// World position, metres.
+    pub position: Vector3<f64>,
+    /// World velocity, metres per second.
+    pub velocity: Vector3<f64>,
+    /// Confidence in [0, 1]: high for a clear, predicted measurement, decaying while predicted.
+    pub confidence: f64,
+    /// Tracking state.
+    pub state: State,
+    /// Frames since the last measurement.
+    pub unmeasured: u32,
+}
+
+/// Labels clusters into the three tracks and predicts them.
+#[derive(Clone, Debug)]
+pub struct Tracker {
+    config: TrackerConfig,
+    up: Vector3<f64>,
+    signer_left: Vector3<f64>,
+    tracks: Option<[Track; 3]>,
+    time: f64,
+    reinitialisations: u64,
+}
+
+impl Tracker {
+    /// A tracker for a scene whose world `up` direction and signer's-left direction (the
+    /// camera's right, for a signer facing the camera) are given.
+    pub fn new(config: TrackerConfig, up: Vector3<f64>, signer_left: Vector3<f64>) -> Self {
+        Self {
+            config,
+            up: up.try_normalize(1e-12).unwrap_or_else(Vector3::y),
+            signer_left: signer_left.try_normalize(1e-12).unwrap_or_else(Vector3::x),
+            tracks: None,
+            time: 0.0,
+            reinitialisations: 0,
+        }
+    }
+
+    /// The tracks after the last update (`None` before the first measurement).
+    pub fn tracks(&self) -> Option<&[Track; 3]> {
+        self.tracks.as_ref()
+    }
+
+    /// Re-initialisations so far (a track jumping to a cluster far from its prediction).
+    pub fn reinitialisations(&self) -> u64 {
+        self.reinitialisations
+    }
+
+    /// Constant-velocity predictions at time `t` (seconds), in track order, to initialise
+    /// the next EM fit; `None` before the first measurement or when every track is lost.
+    pub fn predictions(&self, t: f64) -> Option<[(Vector3<f64>, Vector3<f64>); 3]> {
+        let tracks = self.tracks.as_ref()?;
+        if tracks.iter().all(|k| k.state == State::Lost) {
+            return None;
+        }
+        let dt = t - self.time;
+        Some(tracks.map(|k| match k.state {
+            State::Lost => (k.position, Vector3::zeros()),
+            _ => (k.position + k.velocity * dt, k.velocity),
+        }))
+    }
+
+    /// Takes the clusters of the frame at time `t` (or none, when the frame had no usable
+    /// point) and returns the three tracks.
+    pub fn update(&mut self, t: f64, fit: Option<&EmFit>) -> [Track; 3] {
+        let clusters: Vec<&Component> = match fit {
+            Some(f) => {
+                let total: f64 = f.components.iter().map(|c| c.mass).sum();
+                f.components
+                    .iter()
+                    .filter(|c| !c.empty && total > 0.0 && c.mass / total >= self.config.min_mass_share)
+                    .collect()
+            }
+            None => Vec::new(),
+        };
+        let tracks = match self.predictions(t) {
+            Some(predicted) => self.follow(predicted, &clusters),
+            None => self.start(&clusters),
+        };
+        self.time = t;
+        if let Some(tracks) = tracks {
+            self.tracks = Some(tracks);
+        }
+        self.tracks.unwrap_or(
+            [Track {
+                position: Vector3::zeros(),
+                velocity: Vector3::zeros(),
+                confidence: 0.0,
+                state: State::Lost,
+                unmeasured: 0,
+            }; 3],
+        )
+    }
+
+    /// First labelling: head is the highest cluster, the hands are told apart by the
+    /// signer's left. Needs three clusters.
+    fn start(&mut self, clusters: &[&Component]) -> Option<[Track; 3]> {
+        if clusters.len() < 3 {
+            return None;
+        }
+        let head = (0..clusters.len())
+            .max_by(|&a, &b| clusters[a].position.dot(&self.up).total_cmp(&clusters[b].position.dot(&self.up)))?;
+        let mut hands: Vec<usize> = (0..clusters.len()).filter(|&k| k != head).collect();
+        // Of the remaining, the two largest are the hands.
+        hands.sort_by(|&a, &b| clusters[b].mass.total_cmp(&clusters[a].mass));
+        hands.truncate(2);
+        let side = |k: usize| clusters[k].position.dot(&self.signer_left);
+        let (left, right) = if side(hands[0]) >= side(hands[1]) { (hands[0], hands[1]) } else { (hands[1], hands[0]) };
+        Some([head, left, right].map(|k| measured(clusters[k], 1.0)))
+    }
+
+    /// Later frames: the assignment of clusters to tracks that best matches the predicted
+    /// positions and velocities (all permutations; three tracks make six).
+    fn follow(&mut self, predicted: [(Vector3<f64>, Vector3<f64>); 3], clusters: &[&Component]) -> Option<[Track; 3]> {
+        let previous = self.tracks?;
+        let cost = |track: usize, c: &Component| {
+            let (p, v) = predicted[track];
+            (c.position - p).norm() + self.config.velocity_weight_s * (c.velocity - v).norm()
+        };
+        // A track left without a cluster pays the re-initialisation distance: better
+        // unmeasured than matched to a cluster farther than that.
+        let miss = self.config.reinit_distance_m;
+        let mut best: ([Option<usize>; 3], f64) = ([None; 3], f64::INFINITY);
+        let options: Vec<Option<usize>> = (0..clusters.len()).map(Some).chain(std::iter::once(None)).collect();
+        for &a in &options {
+            for &b in &options {
+                for &c in &options {
+                    let pick = [a, b, c];
+                    let distinct = (0..3).all(|i| (0..i).all(|j| pick[i].is_none() || pick[i] != pick[j]));
+                    if !distinct {
+                        continue;
+                    }
+                    let total: f64 = (0..3).map(|k| pick[k].map_or(miss, |i| cost(k, clusters[i]))).sum();
+                    if total < best.1 {
+                        best = (pick, total);
+                    }
+                }
+            }
+        }
+        // A track its prediction no longer explains (no cluster within the re-initialisation
+        // distance for a second frame running) is re-initialised on the cluster nearest to
+        // its prediction that no other track took: the object reappeared somewhere the
+        // constant-velocity model did not expect.
+        for (k, track) in previous.iter().enumerate() {
+            if best.0[k].is_some() || track.unmeasured == 0 {
+                continue;
+            }
+            let free = (0..clusters.len())
+                .filter(|i| !best.0.contains(&Some(*i)))
+                .min_by(|&a, &b| cost(k, clusters[a]).total_cmp(&cost(k, clusters[b])));
+            if let Some(i) = free {
+                best.0[k] = Some(i);
+            }
+        }
+        let mut out = previous;
+        for k in 0..3 {
+            let (p, v) = predicted[k];
+            out[k] = match best.0[k] {
+                Some(i) => {
+                    let c = clusters[i];
+                    let distance = (c.position - p).norm();
+                    if distance > self.config.reinit_distance_m {
+                        self.reinitialisations += 1;
+                        measured(c, 0.5)
+                    } else {
+                        let agreement = (-0.5 * (distance / (0.5 * self.config.reinit_distance_m)).powi(2)).exp();
+                        measured(c, agreement)
+                    }
+                }
+                None => {
+                    let unmeasured = previous[k].unmeasured + 1;
+                    if unmeasured > self.config.lost_after || previous[k].state == State::Lost {
+                        Track {
+                            position: previous[k].position,
+                            velocity: Vector3::zeros(),
+                            confidence: 0.0,
+                            state: State::Lost,
+                            unmeasured,
+                        }
+                    } else {
+                        Track {
+                            position: p,
+                            velocity: v,
+                            confidence: previous[k].confidence * 0.8,
+                            state: State::Predicted,
+                            unmeasured,
+                        }
+                    }
+                }
+            };
+        }
+        Some(out)
+    }
+}
+
+fn measured(c: &Component, confidence: f64) -> Track {
+    Track {
+        position: c.position,
+        velocity: c.velocity,
+        confidence: confidence.clamp(0.0, 1.0),
+        state: State::Tracked,
+        unmeasured: 0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Matrix6;
+
+    fn cluster(x: f64, y: f64, vx: f64, mass: f64) -> Component {
+        Component {
+            position: Vector3::new(x, y, 0.0),
+            velocity: Vector3::new(vx, 0.0, 0.0),
+            covariance: Matrix6::identity() * 1e-4,
+            mixing: mass,
+            mass,
+            empty: false,
+        }
+    }
+
+    fn fit(components: Vec<Component>) -> EmFit {
+        EmFit { components, iterations: 1, log_likelihood: 0.0, points_used: 100, outlier_share: 0.0 }
+    }
+
+    fn tracker() -> Tracker {
+        Tracker::new(TrackerConfig::default(), Vector3::y(), Vector3::x())
+    }
+
+    #[test]
+    fn the_first_frame_labels_head_on_top_and_hands_by_the_signers_side() {
+        let mut t = tracker();
+        assert!(t.predictions(0.0).is_none());
+        // Given in a scrambled order: right hand (-x), head, left hand (+x).
+        let tracks = t.update(
+            0.0,
+            Some(&fit(vec![cluster(-0.2, 1.0, 0.0, 1.0), cluster(0.0, 1.6, 0.0, 2.0), cluster(0.25, 1.1, 0.0, 1.0)])),
+        );
+        assert_eq!(tracks[0].position.y, 1.6);
+        assert_eq!(tracks[1].position.x, 0.25, "left hand on the signer's left");
+        assert_eq!(tracks[2].position.x, -0.2);
+        assert!(tracks.iter().all(|k| k.state == State::Tracked));
+    }
+
+    #[test]
+    fn crossing_hands_keep_their_labels_through_the_crossing() {
+        let mut t = tracker();
+        let dt = 1.0 / 30.0;
+        // Left hand from +0.15 moving -1.5 m/s, right hand from -0.15 moving +1.5 m/s: they
+        // meet at x = 0 at frame 3, 3 cm apart in height, and pass.
+        for f in 0..8 {
+            let time = f as f64 * dt;
+            let left = cluster(0.15 - 1.5 * time, 1.0, -1.5, 1.0);
+            let right = cluster(-0.15 + 1.5 * time, 1.03, 1.5, 1.0);
+            let head = cluster(0.0, 1.6, 0.0, 2.0);
+            // The clusters come in any order.
+            let order = if f % 2 == 0 { vec![right, head, left] } else { vec![left, right, head] };
+            let tracks = t.update(time, Some(&fit(order)));
+            assert!((tracks[1].velocity.x + 1.5).abs() < 1e-9, "frame {f}: left hand keeps moving left");
+            assert!((tracks[2].velocity.x - 1.5).abs() < 1e-9, "frame {f}: right hand keeps moving right");
+            assert!((tracks[1].position.x - (0.15 - 1.5 * time)).abs() < 1e-9);
+        }
+        assert_eq!(t.reinitialisations(), 0);
+    }
+
+    #[test]
+    fn a_vanishing_hand_is_predicted_then_lost_then_reinitialised_where_it_reappears() {
+        let mut t = tracker();
+        let dt = 1.0 / 30.0;
+        let head = || cluster(0.0, 1.6, 0.0, 2.0);
+        let left = |time: f64| cluster(0.2 + 0.3 * time, 1.0, 0.3, 1.0);
+        t.update(0.0, Some(&fit(vec![head(), left(0.0), cluster(-0.2, 1.0, 0.0, 1.0)])));
+        // The right hand disappears (behind the torso): its cluster is gone.
+        let mut confidence = 1.0;
+        for f in 1..=5 {
+            let time = f as f64 * dt;
+            let tracks = t.update(time, Some(&fit(vec![head(), left(time)])));
+            assert_eq!(tracks[2].state, State::Predicted, "frame {f}");
+            assert!(tracks[2].confidence < confidence);
+            confidence = tracks[2].confidence;
+            assert_eq!(tracks[1].state, State::Tracked);
+        }
+        // It comes back near its prediction: tracked again, no re-initialisation.
+        let tracks = t.update(6.0 * dt, Some(&fit(vec![head(), left(6.0 * dt), cluster(-0.21, 1.0, 0.0, 1.0)])));
+        assert_eq!(tracks[2].state, State::Tracked);
+        assert_eq!(t.reinitialisations(), 0);
+        // Gone for longer than `lost_after`: lost.
+        let mut last = tracks;
+        for f in 7..30 {
+            let time = f as f64 * dt;
+            last = t.update(time, Some(&fit(vec![head(), left(time)])));
+        }
+        assert_eq!(last[2].state, State::Lost);
+        assert_eq!(last[2].confidence, 0.0);
+        // Reappearing far away (0.4 m from where it was lost): re-initialised there.
+        let back = cluster(-0.2, 1.4, 0.0, 1.0);
+        let tracks = t.update(30.0 * dt, Some(&fit(vec![head(), left(30.0 * dt), back])));
+        assert_eq!(tracks[2].state, State::Tracked);
+        assert!((tracks[2].position - back.position).norm() < 1e-12);
+        assert_eq!(t.reinitialisations(), 1);
+    }
+
+    #[test]
+    fn tiny_clusters_are_not_measurements_and_nothing_is_not_a_panic() {
+        let mut t = tracker();
+        let tracks = t.update(0.0, None);
+        assert!(tracks.iter().all(|k| k.state == State::Lost));
+        let tracks = t.update(
+            0.0,
+            Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 0.001), cluster(-0.2, 1.0, 0.0, 1.0)])),
+        );
+        assert!(tracks.iter().all(|k| k.state == State::Lost), "two real clusters cannot start three tracks");
+    }
+}
