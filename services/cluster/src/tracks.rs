@@ -47,11 +47,26 @@ pub struct TrackerConfig {
     pub min_mass_share: f64,
     /// Frames a track may be predicted before it is lost (default 15, half a second at 30 fps).
     pub lost_after: u32,
+    /// Two tracks whose clusters are closer than this, metres, are merged in this frame (one
+    /// hand passing in front of the other): both coast on their predictions instead of
+    /// taking the same blob and leaving it with each other's labels (default 0.04).
+    pub merge_distance_m: f64,
+    /// Share of a measured velocity taken into the track's velocity (default 0.5; the rest
+    /// is the prediction): one frame's velocity, perhaps from a blob of two hands, cannot
+    /// reverse a track.
+    pub velocity_gain: f64,
 }
 
 impl Default for TrackerConfig {
     fn default() -> Self {
-        Self { velocity_weight_s: 0.1, reinit_distance_m: 0.2, min_mass_share: 0.02, lost_after: 15 }
+        Self {
+            velocity_weight_s: 0.1,
+            reinit_distance_m: 0.2,
+            min_mass_share: 0.02,
+            lost_after: 15,
+            merge_distance_m: 0.04,
+            velocity_gain: 0.5,
+        }
     }
 }
 
@@ -196,16 +211,34 @@ impl Tracker {
                 }
             }
         }
+        // Merged clusters: two tracks on (nearly) one blob coast through it.
+        let mut merged = [false; 3];
+        for a in 0..3 {
+            for b in a + 1..3 {
+                if let (Some(i), Some(j)) = (best.0[a], best.0[b]) {
+                    if (clusters[i].position - clusters[j].position).norm() < self.config.merge_distance_m {
+                        merged[a] = true;
+                        merged[b] = true;
+                    }
+                }
+            }
+        }
+        let taken: Vec<usize> = best.0.iter().flatten().copied().collect();
+        for (k, m) in merged.iter().enumerate() {
+            if *m {
+                best.0[k] = None;
+            }
+        }
         // A track its prediction no longer explains (no cluster within the re-initialisation
         // distance for a second frame running) is re-initialised on the cluster nearest to
         // its prediction that no other track took: the object reappeared somewhere the
         // constant-velocity model did not expect.
         for (k, track) in previous.iter().enumerate() {
-            if best.0[k].is_some() || track.unmeasured == 0 {
+            if best.0[k].is_some() || track.unmeasured == 0 || merged[k] {
                 continue;
             }
             let free = (0..clusters.len())
-                .filter(|i| !best.0.contains(&Some(*i)))
+                .filter(|i| !best.0.contains(&Some(*i)) && !taken.contains(i))
                 .min_by(|&a, &b| cost(k, clusters[a]).total_cmp(&cost(k, clusters[b])));
             if let Some(i) = free {
                 best.0[k] = Some(i);
@@ -223,7 +256,10 @@ impl Tracker {
                         measured(c, 0.5)
                     } else {
                         let agreement = (-0.5 * (distance / (0.5 * self.config.reinit_distance_m)).powi(2)).exp();
-                        measured(c, agreement)
+                        let mut track = measured(c, agreement);
+                        let g = self.config.velocity_gain.clamp(0.0, 1.0);
+                        track.velocity = v + (c.velocity - v) * g;
+                        track
                     }
                 }
                 None => {
