@@ -310,11 +310,35 @@ pub fn extremity_means(
         let vel = set.iter().fold(Vector3::zeros(), |a, p| a + p.velocity * p.weight) / w;
         (pos, vel)
     };
+    // Clutter (false skin on a wall, stray depths) must not become an extremity: only points
+    // within a person's reach of the weighted median take part.
+    let median: Vector3<f64> = Vector3::from_fn(|d, _| weighted_median(&usable, |p| p.position[d]));
+    let near: Vec<&WeightedPoint> =
+        usable.iter().copied().filter(|p| (p.position - median).norm() <= EXTREMITY_RADIUS_M).collect();
+    let usable = if near.is_empty() { usable } else { near };
     let top = extreme(&usable, up, 0.1, true);
     let lower = extreme(&usable, up, 0.5, false);
     let left = extreme(&lower, right, 0.2, false);
     let right_side = extreme(&lower, right, 0.2, true);
     Some([mean_of(&top), mean_of(&left), mean_of(&right_side)])
+}
+
+/// Radius around the points' weighted median within which extremities are looked for,
+/// metres: head and hands of a person lie within about a metre of their middle.
+pub const EXTREMITY_RADIUS_M: f64 = 1.0;
+
+fn weighted_median(points: &[&WeightedPoint], value: impl Fn(&WeightedPoint) -> f64) -> f64 {
+    let mut v: Vec<(f64, f64)> = points.iter().map(|p| (value(p), p.weight)).collect();
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let half = v.iter().map(|x| x.1).sum::<f64>() / 2.0;
+    let mut acc = 0.0;
+    for (x, w) in &v {
+        acc += w;
+        if acc >= half {
+            return *x;
+        }
+    }
+    v.last().map_or(0.0, |x| x.0)
 }
 
 /// The points holding `share` of the weight from the high (or low) end along `axis`.
@@ -524,6 +548,13 @@ mod tests {
         let [top, left, right] = extremity_means(&pts, Vector3::y(), Vector3::x()).unwrap();
         assert!((top.0.y - 1.6).abs() < 0.1);
         assert!(left.0.x < -0.15 && right.0.x > 0.15, "{left:?} {right:?}");
+        // Clutter high on the wall behind and low near the floor is not an extremity.
+        let mut cluttered = pts.clone();
+        cluttered.extend(blob(&mut rng, 200, [0.4, 2.7, -3.3], [0.0; 3], 0.05, 0.05));
+        cluttered.extend(blob(&mut rng, 200, [-0.8, 0.3, -2.8], [0.0; 3], 0.05, 0.05));
+        let [top, left, right] = extremity_means(&cluttered, Vector3::y(), Vector3::x()).unwrap();
+        assert!((top.0 - Vector3::new(0.0, 1.6, 0.0)).norm() < 0.1, "{top:?}");
+        assert!(left.0.x < -0.15 && left.0.y > 0.9 && right.0.x > 0.15, "{left:?} {right:?}");
         assert!(extremity_means(&[], Vector3::y(), Vector3::x()).is_none());
     }
 

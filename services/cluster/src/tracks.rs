@@ -51,6 +51,9 @@ pub struct TrackerConfig {
     /// hand passing in front of the other): both coast on their predictions instead of
     /// taking the same blob and leaving it with each other's labels (default 0.04).
     pub merge_distance_m: f64,
+    /// A free cluster closer than this to another track's cluster, metres, is a piece of
+    /// that object and never re-initialises a track (default 0.15, about a head's width).
+    pub split_distance_m: f64,
     /// Share of a measured velocity taken into the track's velocity (default 0.5; the rest
     /// is the prediction): one frame's velocity, perhaps from a blob of two hands, cannot
     /// reverse a track.
@@ -65,6 +68,7 @@ impl Default for TrackerConfig {
             min_mass_share: 0.02,
             lost_after: 15,
             merge_distance_m: 0.04,
+            split_distance_m: 0.15,
             velocity_gain: 0.5,
         }
     }
@@ -237,8 +241,13 @@ impl Tracker {
             if best.0[k].is_some() || track.unmeasured == 0 || merged[k] {
                 continue;
             }
+            // Not a piece of an object another track holds: a cluster that close to another
+            // track's measurement is that object split in two.
+            let others: Vec<Vector3<f64>> =
+                (0..3).filter(|&o| o != k).filter_map(|o| best.0[o].map(|i| clusters[i].position)).collect();
             let free = (0..clusters.len())
                 .filter(|i| !best.0.contains(&Some(*i)) && !taken.contains(i))
+                .filter(|&i| others.iter().all(|p| (clusters[i].position - p).norm() > self.config.split_distance_m))
                 .min_by(|&a, &b| cost(k, clusters[a]).total_cmp(&cost(k, clusters[b])));
             if let Some(i) = free {
                 best.0[k] = Some(i);
