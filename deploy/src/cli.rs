@@ -142,6 +142,21 @@ enum BenchCommand {
     Accuracy(BenchAccuracyArgs),
     /// Rendering speed of a synthetic scene (to memory), one thread and all cores.
     Render(BenchRenderArgs),
+    /// Clustering and labelling time per frame, against EM on every point.
+    Cluster(BenchClusterArgs),
+}
+
+#[derive(Args, Debug)]
+struct BenchClusterArgs {
+    /// Weighted points per frame.
+    #[arg(long, default_value_t = 100_000)]
+    points: usize,
+    /// Frames timed.
+    #[arg(long, default_value_t = 60)]
+    frames: usize,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args, Debug)]
@@ -286,6 +301,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(BenchCommand::Flow(args))) => bench_flow(&args),
         Some(Command::Bench(BenchCommand::Accuracy(args))) => bench_accuracy(&args),
         Some(Command::Bench(BenchCommand::Render(args))) => bench_render(&args),
+        Some(Command::Bench(BenchCommand::Cluster(args))) => bench_cluster(&args),
         Some(Command::Render(args)) => render(&args),
         Some(Command::Track(args)) => track(&args),
         Some(Command::Overlay(args)) => overlay(&args),
@@ -624,6 +640,25 @@ fn track(args: &TrackArgs) -> Result<()> {
             path.display()
         );
     }
+    Ok(())
+}
+
+fn bench_cluster(args: &BenchClusterArgs) -> Result<()> {
+    anyhow::ensure!(args.points > 0 && args.frames > 0, "--points and --frames must be at least 1");
+    let r = crate::cluster_bench::bench_cluster(args.points, args.frames);
+    if args.json {
+        out!("{}", serde_json::to_string(&r)?);
+        return Ok(());
+    }
+    out!("clustering and labelling, {} points per frame, {} frames", r.points, r.frames);
+    out!(
+        "  EM (subsampled) + labelling {:8.2} ms per frame ({:.2} ms slowest, {:.1} EM iterations)",
+        r.ms_per_frame,
+        r.ms_per_frame_max,
+        r.iterations
+    );
+    out!("  baseline: EM on every point {:8.2} ms per frame: {:.1}x faster", r.baseline_ms_per_frame, r.speedup);
+    out!("  largest track error         {:8.3} m", r.max_track_error_m);
     Ok(())
 }
 

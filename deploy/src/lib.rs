@@ -5,6 +5,7 @@
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
 pub mod cli;
+pub mod cluster_bench;
 pub mod flow_eval;
 pub mod middlebury;
 pub mod overlay;

@@ -10,13 +10,13 @@ use crate::WeightedPoint;
 pub struct EmConfig {
     /// Iterations at most (default 25).
     pub max_iterations: usize,
-    /// Stop when the mean log-likelihood per unit weight changes less than this (default 1e-4).
+    /// Stop when the mean log-likelihood per unit weight changes less than this (default 1e-3).
     pub tolerance: f64,
     /// Seconds: velocity (m/s) times this becomes metres (default 0.1). A hand moving 1 m/s
     /// is then as far from a still one as 10 cm of position: hands close together are about
     /// that far apart and signs move them at 0.5 to 2 m/s, so both halves count alike.
     pub velocity_scale: f64,
-    /// Points used at most (default 8000): larger sets are subsampled in proportion to their
+    /// Points used at most (default 4000): larger sets are subsampled in proportion to their
     /// weights (systematic resampling), which keeps every cluster's share of the weight and
     /// bounds the time per frame.
     pub max_points: usize,
@@ -37,7 +37,7 @@ impl Default for EmConfig {
             max_iterations: 25,
             tolerance: 1e-4,
             velocity_scale: 0.1,
-            max_points: 8000,
+            max_points: 4000,
             min_std: 0.01,
             seed: 0,
             outliers: true,
@@ -136,28 +136,38 @@ pub fn fit_mixture(
     for _ in 0..config.max_iterations.max(1) {
         iterations += 1;
         // E-step in the log domain.
-        let factors: Vec<(Cholesky<f64, nalgebra::Const<6>>, f64)> =
-            covs.iter().map(|c| robust_cholesky(c, floor)).collect();
+        // Per component: the inverse Cholesky factor (so a point costs one 6x6 product) and
+        // the constant part of its log density.
+        let prepared: Vec<(Matrix6<f64>, f64)> = covs
+            .iter()
+            .zip(&mixing)
+            .map(|(c, m)| {
+                let (chol, log_det) = robust_cholesky(c, floor);
+                let inverse = chol.l().try_inverse().unwrap_or_else(Matrix6::identity);
+                let constant = m.max(1e-300).ln() - 0.5 * (log_det + 6.0 * (2.0 * std::f64::consts::PI).ln());
+                (inverse, constant)
+            })
+            .collect();
+        let log_out = if config.outliers { outlier_share.ln() - log_volume } else { f64::NEG_INFINITY };
         let mut ll = 0.0;
         for (i, f) in features.iter().enumerate() {
             let row = &mut resp[i * k..(i + 1) * k];
-            let mut best = f64::NEG_INFINITY;
-            for j in 0..k {
-                let (chol, log_det) = &factors[j];
-                let d = f - means[j];
-                let y = chol.l().solve_lower_triangular(&d).unwrap_or_else(|| d * 1e6);
-                let l = mixing[j].max(1e-300).ln()
-                    - 0.5 * (y.norm_squared() + log_det + 6.0 * (2.0 * std::f64::consts::PI).ln());
-                row[j] = l;
-                best = best.max(l);
+            let mut best = log_out;
+            for (j, r) in row.iter_mut().enumerate() {
+                let (inverse, constant) = &prepared[j];
+                let y = inverse * (f - means[j]);
+                *r = constant - 0.5 * y.norm_squared();
+                best = best.max(*r);
             }
-            let log_out = if config.outliers { outlier_share.ln() - log_volume } else { f64::NEG_INFINITY };
-            let best = best.max(log_out);
-            let sum: f64 = row.iter().map(|l| (l - best).exp()).sum::<f64>() + (log_out - best).exp();
-            let log_norm = best + sum.ln();
+            let mut sum = (log_out - best).exp();
             for r in row.iter_mut() {
-                *r = (*r - log_norm).exp();
+                *r = (*r - best).exp();
+                sum += *r;
             }
+            for r in row.iter_mut() {
+                *r /= sum;
+            }
+            let log_norm = best + sum.ln();
             ll += weights[i] * log_norm;
         }
         log_likelihood = ll / wsum;
