@@ -18,6 +18,9 @@ use nalgebra::{Point3, Vector3};
 
 use crate::recording_flow::{recording_engine_config, recording_fps, reference_camera, WARM_UP_ROUNDS};
 
+/// Frames between detecting faces on a frame and using the models adapted to them.
+pub const MODEL_LAG: u64 = 5;
+
 /// What to run.
 #[derive(Clone, Debug)]
 pub struct TrackOptions {
@@ -84,14 +87,6 @@ pub fn track_recording(
     let mut engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let frames = options.max_frames.unwrap_or(rec.len()).min(rec.len());
     anyhow::ensure!(frames >= 2, "recording `{}` needs at least 2 frames, has {frames}", dir.display());
-    let mut adapter =
-        SkinAdapter::new(&rig.cameras, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY).map_err(anyhow::Error::msg)?;
-    let mut buf = vec![0u8; rec.frame_set_len()];
-    for k in 0..WARM_UP_ROUNDS.min(frames) {
-        rec.read_frame_into((k as u64) * DEFAULT_DETECT_EVERY % rec.len() as u64, false, &mut buf)?;
-        adapter.adapt_now(&rec.views(&buf));
-    }
-    engine.set_skin_models(adapter.models())?;
     let mut stage = ClusterStage {
         tracker: Tracker::new(TrackerConfig::default(), up, signer_left),
         em: EmConfig::default(),
@@ -104,24 +99,94 @@ pub fn track_recording(
     let mut written = 0;
     // Every frame but the first gets an estimate (the last through the flush).
     let total = frames - 1;
-    for k in 0..frames {
-        rec.read_frame_into(k as u64, false, &mut buf)?;
-        let views = rec.views(&buf);
-        if adapter.observe(k as u64, &views) {
-            engine.set_skin_models(adapter.models())?;
+    // Three threads of control: frames are decoded one ahead, faces are detected beside the
+    // engine, and the engine and clustering run here. Adapted models are applied
+    // `MODEL_LAG` frames after the frame they were detected on, whatever the timing, so a
+    // run's output depends on the recording alone.
+    std::thread::scope(|scope| -> Result<()> {
+        let (frame_tx, frame_rx) = std::sync::mpsc::sync_channel::<Result<Vec<u8>>>(2);
+        let (spare_tx, spare_rx) = std::sync::mpsc::channel::<Vec<u8>>();
+        let rec_ref = &rec;
+        scope.spawn(move || {
+            for k in 0..frames {
+                let mut buf = spare_rx.try_recv().unwrap_or_else(|_| vec![0u8; rec_ref.frame_set_len()]);
+                let read = rec_ref.read_frame_into(k as u64, false, &mut buf).map(|_| buf).map_err(anyhow::Error::from);
+                let failed = read.is_err();
+                if frame_tx.send(read).is_err() || failed {
+                    return;
+                }
+            }
+        });
+        let (face_tx, face_rx) = std::sync::mpsc::channel::<Vec<u8>>();
+        let (model_tx, model_rx) = std::sync::mpsc::channel::<Result<Vec<handflow_flow::skin::SkinModel>>>();
+        let cameras = rig.cameras.clone();
+        scope.spawn(move || {
+            // The detector is not `Send`: it lives and dies on this thread.
+            let mut adapter = match SkinAdapter::new(&cameras, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY) {
+                Ok(a) => a,
+                Err(e) => {
+                    let _ = model_tx.send(Err(anyhow::Error::msg(e)));
+                    return;
+                }
+            };
+            for frame_set in face_rx {
+                let mut offset = 0;
+                let views: Vec<&[u8]> = cameras
+                    .iter()
+                    .map(|c| {
+                        let len = c.width as usize * c.height as usize * 3;
+                        let v = &frame_set[offset..offset + len];
+                        offset += len;
+                        v
+                    })
+                    .collect();
+                adapter.adapt_now(&views);
+                if model_tx.send(Ok(adapter.models().to_vec())).is_err() {
+                    return;
+                }
+            }
+        });
+        let apply_models = |engine: &mut SceneFlowEngine| -> Result<()> {
+            let models = model_rx.recv().context("the face detection thread stopped")??;
+            engine.set_skin_models(&models)?;
+            Ok(())
+        };
+        // Adapt before the first estimate, as a running service would have by then.
+        let mut warm = vec![0u8; rec.frame_set_len()];
+        for k in 0..WARM_UP_ROUNDS.min(frames) {
+            rec.read_frame_into((k as u64) * DEFAULT_DETECT_EVERY % rec.len() as u64, false, &mut warm)?;
+            face_tx.send(warm.clone()).context("the face detection thread stopped")?;
+            apply_models(&mut engine)?;
         }
-        let done = engine.push_frame(&views).with_context(|| format!("frame {k}"))?.is_some();
-        if done {
+        let mut pending = Vec::new();
+        for k in 0..frames {
+            let buf = frame_rx.recv().context("the decoding thread stopped")??;
+            let k = k as u64;
+            if k % DEFAULT_DETECT_EVERY == 0 {
+                face_tx.send(buf.clone()).context("the face detection thread stopped")?;
+                pending.push(k + MODEL_LAG);
+            }
+            if pending.first() == Some(&k) {
+                pending.remove(0);
+                apply_models(&mut engine)?;
+            }
+            let views = rec.views(&buf);
+            let done = engine.push_frame(&views).with_context(|| format!("frame {k}"))?.is_some();
+            let _ = spare_tx.send(buf);
+            if done {
+                let record = stage.record(&engine, &rec)?;
+                written += 1;
+                on_record(&record, written, total)?;
+            }
+        }
+        drop(face_tx);
+        if engine.flush().is_some() {
             let record = stage.record(&engine, &rec)?;
             written += 1;
             on_record(&record, written, total)?;
         }
-    }
-    if engine.flush().is_some() {
-        let record = stage.record(&engine, &rec)?;
-        written += 1;
-        on_record(&record, written, total)?;
-    }
+        Ok(())
+    })?;
     let seconds = started.elapsed().as_secs_f64();
     Ok(TrackSummary {
         frames: written,
