@@ -88,6 +88,7 @@ pub fn track_recording(
     let frames = options.max_frames.unwrap_or(rec.len()).min(rec.len());
     anyhow::ensure!(frames >= 2, "recording `{}` needs at least 2 frames, has {frames}", dir.display());
     let mut stage = ClusterStage {
+        ray_spread_var: 0.0,
         tracker: Tracker::new(TrackerConfig::default(), up, signer_left),
         em: EmConfig::default(),
         points: Vec::new(),
@@ -199,6 +200,8 @@ pub fn track_recording(
 
 /// Clustering and labelling of the engine's estimates.
 struct ClusterStage {
+    /// Mean variance of a ray's particles along the ray, this frame, square metres.
+    ray_spread_var: f64,
     tracker: Tracker,
     em: EmConfig,
     points: Vec<WeightedPoint>,
@@ -222,12 +225,25 @@ impl ClusterStage {
             None => extremity_means(&self.points, self.tracker_up(engine), self.tracker_left(engine)),
         };
         let mut fit = initial.and_then(|init| fit_mixture(&self.points, &init, &self.em));
+        let raw = fit.clone();
         if let (Some(fit), true) = (fit.as_mut(), self.centre_correction) {
             for c in fit.components.iter_mut() {
-                surface_to_centre(c, &self.eye, self.em.min_std);
+                surface_to_centre(c, &self.eye, self.em.min_std, self.ray_spread_var);
             }
         }
-        let tracks = self.tracker.update(t, fit.as_ref());
+        let mut tracks = self.tracker.update(t, fit.as_ref());
+        // The head's skin is its face, a shallow cap of a nearly round object: its depth spread
+        // says little about its size, so its centre comes from the spread across the view.
+        if let (Some(fit), Some(raw), true) = (&fit, &raw, self.centre_correction) {
+            if tracks[0].state == State::Tracked {
+                if let Some(j) = fit.components.iter().position(|c| c.position == tracks[0].position) {
+                    let mut head = raw.components[j];
+                    surface_to_centre(&mut head, &self.eye, self.em.min_std, f64::INFINITY);
+                    tracks[0].position = head.position;
+                    self.tracker.set_position(0, head.position);
+                }
+            }
+        }
         let objects: BTreeMap<String, ObjectSample> = OBJECTS
             .iter()
             .zip(tracks)
@@ -262,12 +278,27 @@ impl ClusterStage {
     fn collect_points(&mut self, engine: &SceneFlowEngine) {
         self.points.clear();
         let field = engine.field();
+        let (mut spread, mut spread_weight) = (0.0, 0.0);
         for ray in 0..field.width * field.height {
             let confidence = f64::from(field.confidence[ray]);
             if confidence <= 0.0 {
                 continue;
             }
-            for p in engine.ray_particles(ray) {
+            // The particles' own spread along the ray: part of every cluster's variance in
+            // depth that says nothing about the object's shape.
+            let particles = engine.ray_particles(ray);
+            let w: f64 = particles.iter().map(|p| f64::from(p.weight)).sum();
+            if w > 0.0 && particles.len() > 1 {
+                let distance = |p: &handflow_flow::Particle| {
+                    let q = engine.particle_position(ray, p);
+                    (Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2])) - self.eye.coords).norm()
+                };
+                let mean = particles.iter().map(|p| f64::from(p.weight) * distance(p)).sum::<f64>() / w;
+                let var = particles.iter().map(|p| f64::from(p.weight) * (distance(p) - mean).powi(2)).sum::<f64>() / w;
+                spread += confidence * var;
+                spread_weight += confidence;
+            }
+            for p in particles {
                 let pos = engine.particle_position(ray, p);
                 self.points.push(WeightedPoint {
                     position: Vector3::new(f64::from(pos[0]), f64::from(pos[1]), f64::from(pos[2])),
@@ -280,6 +311,7 @@ impl ClusterStage {
                 });
             }
         }
+        self.ray_spread_var = if spread_weight > 0.0 { spread / spread_weight } else { 0.0 };
     }
 }
 
@@ -289,14 +321,21 @@ impl ClusterStage {
 /// centre. The radius along the line of sight is estimated twice, from the spread across
 /// the view (r/2 for a sphere) and from the spread in depth (0.236 r), and the smaller is
 /// used: a flat hand facing the camera is wide but thin, and depth noise only ever widens
-/// the second estimate. `min_std` is the floor EM added to every variance.
-pub fn surface_to_centre(c: &mut Component, eye: &Point3<f64>, min_std: f64) {
+/// the second estimate. `min_std` is the floor EM added to every variance and
+/// `ray_spread_var` the variance a ray's particles have along it (the filter's own
+/// uncertainty, not the object's depth): both are taken out of the depth spread first.
+pub fn surface_to_centre(c: &mut Component, eye: &Point3<f64>, min_std: f64, ray_spread_var: f64) {
     let Some(sight) = (c.position - eye.coords).try_normalize(1e-9) else { return };
     let p = c.covariance.fixed_view::<3, 3>(0, 0);
     let floor = min_std * min_std;
     let along = (sight.transpose() * p * sight)[(0, 0)];
     let across = (p.trace() - along) / 2.0;
     let r_across = 2.0 * (across - floor).max(0.0).sqrt();
-    let r_along = (along - floor).max(0.0).sqrt() / 0.236;
+    // An infinite `ray_spread_var` leaves only the estimate across the view.
+    let r_along = if ray_spread_var.is_finite() {
+        (along - floor - ray_spread_var).max(0.0).sqrt() / 0.236
+    } else {
+        f64::INFINITY
+    };
     c.position += sight * (2.0 / 3.0) * r_across.min(r_along);
 }

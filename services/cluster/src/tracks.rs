@@ -119,6 +119,14 @@ impl Tracker {
         self.tracks.as_ref()
     }
 
+    /// Replaces track `k`'s current position (a caller refining the measurement, e.g. with
+    /// knowledge of the object's shape); the next prediction starts from it.
+    pub fn set_position(&mut self, k: usize, position: Vector3<f64>) {
+        if let Some(track) = self.tracks.as_mut().and_then(|t| t.get_mut(k)) {
+            track.position = position;
+        }
+    }
+
     /// Re-initialisations so far (a track jumping to a cluster far from its prediction).
     pub fn reinitialisations(&self) -> u64 {
         self.reinitialisations
