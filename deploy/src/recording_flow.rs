@@ -30,8 +30,8 @@ pub const RECORDING_PARTICLES_PER_RAY: usize = 8;
 /// The engine configuration for trajectories on a recording: the variant's defaults, skin
 /// coverage, the forwards/backwards likelihood, the search space of a signer at the rig's
 /// frame rate, the half-resolution grid (a quarter of the rays is plenty of points for
-/// clustering), 2 extra coarse loops instead of 7 (the posterior carried from the previous
-/// frame replaces most of the exploration a first frame needs), no weighted-median
+/// clustering), 2 extra coarse loops instead of 7 once the previous frame's posterior is
+/// the prior (it replaces most of the exploration a first frame needs), no weighted-median
 /// refinement (on the half-resolution grid its 9x9 window spans two palm widths' worth of
 /// edges and measurably moved points off the hands), then the overrides (`field=value`).
 /// BENCHMARKS.md has the measurements behind each choice.
@@ -45,7 +45,7 @@ pub fn recording_engine_config(
     let config = EngineConfig {
         particles_per_ray: particles_per_ray.unwrap_or(RECORDING_PARTICLES_PER_RAY),
         finest_level: 1,
-        coarse_extra_loops: 2.min(defaults.coarse_extra_loops),
+        warm_coarse_extra_loops: Some(2.min(defaults.coarse_extra_loops)),
         refine_radius: 0,
         coverage: Coverage::Skin,
         temporal: Temporal::ForwardsBackwards,

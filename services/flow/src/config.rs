@@ -87,6 +87,10 @@ pub struct EngineConfig {
     /// is 16x smaller than the fine one, so these cost a few percent of a frame and let
     /// hypotheses spread across the image before refinement.
     pub coarse_extra_loops: usize,
+    /// Extra coarsest-level loops when the previous frame's posterior is the prior (default
+    /// `None`: as `coarse_extra_loops`). A stream can afford fewer: the carried posterior
+    /// already holds most of what the exploration of a first frame finds.
+    pub warm_coarse_extra_loops: Option<usize>,
     /// Rays of each pyramid level on that level's own pixel grid (true), or full-resolution
     /// rays on every level, coarse levels only blurring the images (false). The paper does
     /// not say which; coarse-to-fine hand-over copies a coarse ray's particles to the four
@@ -206,6 +210,7 @@ impl Default for EngineConfig {
             pyramid_levels: 3,
             noise_loops: 2,
             coarse_extra_loops: 7,
+            warm_coarse_extra_loops: None,
             per_level_rays: true,
             finest_level: 0,
             seed: 0,

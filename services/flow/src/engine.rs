@@ -429,7 +429,11 @@ impl SceneFlowEngine {
             if per_level_grid && level != top {
                 self.upsample_particles(level + 1, level);
             }
-            let extra = if level == top { self.config.coarse_extra_loops } else { 0 };
+            let extra = match (level == top, use_prior) {
+                (false, _) => 0,
+                (true, true) => self.config.warm_coarse_extra_loops.unwrap_or(self.config.coarse_extra_loops),
+                (true, false) => self.config.coarse_extra_loops,
+            };
             let loops = self.config.noise_loops + extra;
             for it in 0..loops {
                 let sigma_level_px = self.config.diffusion_px * self.config.diffusion_shrink.powi(it as i32);
