@@ -515,3 +515,27 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
     let r = handflow(&["eval", "tracks", "--recording", arg(&rec), "--tracks", arg(&bad)]);
     check_failure(&r, &["bad.jsonl", "line 2"]);
 }
+
+/// Bad input to the tracker commands is named: a missing recording, a recording without
+/// truth, a trajectory file for another recording.
+#[test]
+fn track_commands_name_what_is_wrong() {
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("nowhere");
+    check_failure(&handflow(&["track", "--recording", arg(&missing)]), &["nowhere"]);
+    let rec = tmp.path().join("rec");
+    let r = handflow(&["render", "--preset", "signer-2cam-narrow", "--frames", "3", "--out", arg(&rec)]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let tracks = tmp.path().join("t.jsonl");
+    let r = handflow(&["track", "--recording", arg(&rec), "--out", arg(&tracks)]);
+    assert!(r.status.success(), "{}", describe(&r));
+    // A trajectory frame the recording's truth does not have.
+    let text = std::fs::read_to_string(&tracks).unwrap();
+    let shifted = text.replacen("\"frame\":1,", "\"frame\":99,", 1);
+    let other = tmp.path().join("other.jsonl");
+    std::fs::write(&other, shifted).unwrap();
+    check_failure(&handflow(&["eval", "tracks", "--recording", arg(&rec), "--tracks", arg(&other)]), &["frame 99"]);
+    std::fs::remove_file(rec.join("truth.json")).unwrap();
+    check_failure(&handflow(&["eval", "tracks", "--recording", arg(&rec), "--tracks", arg(&tracks)]), &["truth.json"]);
+    check_failure(&handflow(&["track", "--recording", arg(&rec), "--frames", "1"]), &["at least 2 frames"]);
+}
