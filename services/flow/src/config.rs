@@ -91,6 +91,12 @@ pub struct EngineConfig {
     /// `None`: as `coarse_extra_loops`). A stream can afford fewer: the carried posterior
     /// already holds most of what the exploration of a first frame finds.
     pub warm_coarse_extra_loops: Option<usize>,
+    /// Extra passes over a frame estimated without a temporal prior (the first of a
+    /// stream), each taking the previous pass's posterior as its prior, held still (default
+    /// 0). A stream's later frames inherit several frames of evidence through the carried
+    /// posterior; these passes give the first frame some of it, so a trajectory does not
+    /// start from a half-converged depth.
+    pub cold_start_passes: usize,
     /// Rays of each pyramid level on that level's own pixel grid (true), or full-resolution
     /// rays on every level, coarse levels only blurring the images (false). The paper does
     /// not say which; coarse-to-fine hand-over copies a coarse ray's particles to the four
@@ -189,6 +195,13 @@ pub struct EngineConfig {
     /// loses as much weight as that view's evidence says. 0 turns the factor off (rays are
     /// still chosen by skin colour).
     pub skin_weight: f32,
+    /// `skin` coverage, `handflow`: leave the least skin-like view out of `h` when two or
+    /// more views other than the reference see the point (default true; false in `paper`).
+    /// A hand hidden from one camera shows that camera the body in front of it: summed
+    /// over all views, that occluder's verdict outweighs the others' at the true depth and
+    /// pulls the hand to a ghost depth where every view happens to see skin (measured on
+    /// `occluded-side`: the right hand 43 % tracked with it, 97 % without).
+    pub skin_drop_worst_view: bool,
     /// `skin` coverage: a reference-view pixel is skin when its clamped log10 skin ratio
     /// exceeds this (default 0: the skin model is the likelier).
     pub skin_threshold: f32,
@@ -211,6 +224,7 @@ impl Default for EngineConfig {
             noise_loops: 2,
             coarse_extra_loops: 7,
             warm_coarse_extra_loops: None,
+            cold_start_passes: 0,
             per_level_rays: true,
             finest_level: 0,
             seed: 0,
@@ -238,6 +252,7 @@ impl Default for EngineConfig {
             refine_colour_sigma: 0.3,
             fresh_fraction: 0.2,
             skin_weight: 1.0,
+            skin_drop_worst_view: true,
             skin_threshold: 0.0,
         }
     }
@@ -255,6 +270,7 @@ impl EngineConfig {
             propagation: false,
             exploration_particles: 0,
             refine_radius: 0,
+            skin_drop_worst_view: false,
             ..Self::default()
         }
     }

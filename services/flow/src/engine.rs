@@ -141,6 +141,17 @@ pub struct SceneFlowEngine {
     active: Vec<Vec<bool>>,
 }
 
+/// Where a pass over a frame takes its particles from.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Prior {
+    /// The broad initial prior: no earlier estimate to build on.
+    None,
+    /// The previous frame's posterior, moved by its velocities.
+    Carried,
+    /// The previous pass's posterior for this same frame, unmoved.
+    Held,
+}
+
 /// Frames the estimate looks at, oldest first, as ring slots.
 #[derive(Clone, Copy)]
 struct Window {
@@ -408,14 +419,48 @@ impl SceneFlowEngine {
     fn estimate(&mut self, window: Window, started: Instant) {
         let frame = self.frames_pushed - window.len as u64 + 1;
         let _span = tracing::debug_span!("scene_flow", frame, variant = self.config.variant.name()).entered();
-        let use_prior = self.posterior_of == Some(frame.wrapping_sub(1));
+        let carried = self.posterior_of == Some(frame.wrapping_sub(1));
+        let prior = if carried { Prior::Carried } else { Prior::None };
+        let mut evaluations = self.estimate_pass(window, frame, prior, 0);
+        if !carried {
+            for pass in 1..=self.config.cold_start_passes as u64 {
+                evaluations += self.estimate_pass(window, frame, Prior::Held, pass);
+            }
+        }
+        let finest = self.config.finest_level;
+        let rays = self.grids[finest].width * self.grids[finest].height;
+        let occupied_rays = self.counts[..rays].iter().filter(|&&c| c > 0).count();
+        self.stats = FrameStats {
+            frame,
+            evaluations,
+            seconds: started.elapsed().as_secs_f64(),
+            occupied_rays,
+            used_temporal_prior: carried,
+        };
+        tracing::debug!(
+            frame,
+            evaluations,
+            seconds = self.stats.seconds,
+            occupied_rays,
+            temporal_prior = carried,
+            "scene flow estimated"
+        );
+    }
+
+    /// One coarse-to-fine pass over the frame at index 1 of `window`; returns the number of
+    /// likelihood evaluations. `pass` tells the random streams of repeated passes apart.
+    fn estimate_pass(&mut self, window: Window, frame: u64, prior: Prior, pass: u64) -> u64 {
+        let use_prior = prior != Prior::None;
+        // Frame indices stay far below 2^40; later passes draw from their own streams.
+        let frame_key = frame ^ (pass << 40);
         let mut evaluations = 0u64;
         self.prior_valid = use_prior;
         if self.config.coverage == Coverage::Skin {
             self.update_active(window.slots[1]);
         }
         if use_prior {
-            self.carry_posterior_forward(frame);
+            let step = if prior == Prior::Carried { 1.0 } else { 0.0 };
+            self.carry_posterior_forward(frame_key, step);
             self.prior_counts.copy_from_slice(&self.counts);
         }
         let levels = self.config.pyramid_levels;
@@ -423,7 +468,7 @@ impl SceneFlowEngine {
         let per_level_grid = self.config.per_level_rays;
         let top = levels - 1;
         let top_grid = if per_level_grid { top } else { 0 };
-        self.seed_top_level(top_grid, use_prior, frame);
+        self.seed_top_level(top_grid, use_prior, frame_key);
         for level in (finest..levels).rev() {
             let grid = if per_level_grid { level } else { 0 };
             if per_level_grid && level != top {
@@ -439,30 +484,14 @@ impl SceneFlowEngine {
                 let sigma_level_px = self.config.diffusion_px * self.config.diffusion_shrink.powi(it as i32);
                 let last = level == finest && it + 1 == loops;
                 let stage = (level * 64 + it) as u64;
-                evaluations += self.iterate(window, level, grid, sigma_level_px, last, frame, stage, it > 0);
+                evaluations += self.iterate(window, level, grid, sigma_level_px, last, frame_key, stage, it > 0);
                 std::mem::swap(&mut self.best, &mut self.best_back);
             }
         }
         self.publish_field(window);
         self.posterior_of = Some(frame);
         self.posterior_slot = Some(window.slots[1]);
-        let rays = self.grids[finest].width * self.grids[finest].height;
-        let occupied_rays = self.counts[..rays].iter().filter(|&&c| c > 0).count();
-        self.stats = FrameStats {
-            frame,
-            evaluations,
-            seconds: started.elapsed().as_secs_f64(),
-            occupied_rays,
-            used_temporal_prior: use_prior,
-        };
-        tracing::debug!(
-            frame,
-            evaluations,
-            seconds = self.stats.seconds,
-            occupied_rays,
-            temporal_prior = use_prior,
-            "scene flow estimated"
-        );
+        evaluations
     }
 
     /// Marks the rays of every grid level that cover a skin pixel of the reference view in
@@ -489,7 +518,9 @@ impl SceneFlowEngine {
     /// projects onto; rays receiving more than N keep a random N; a share of each ray is
     /// replaced by fresh random particles; empty rays are refilled from neighbours (dense)
     /// or stay empty (sparse).
-    fn carry_posterior_forward(&mut self, frame: u64) {
+    /// `step` scales the velocity move: 1 for the next frame, 0 to hold the posterior still
+    /// for another pass over the same frame.
+    fn carry_posterior_forward(&mut self, frame: u64, step: f32) {
         let n = self.config.particles_per_ray;
         let finest = self.config.finest_level;
         let grid = &self.grids[finest];
@@ -500,7 +531,7 @@ impl SceneFlowEngine {
         for ray in 0..w * h {
             let count = usize::from(self.counts[ray]);
             for p in &self.particles[ray * n..ray * n + count] {
-                let moved = add(point_on_ray(self.origin, grid.dirs[ray], p.depth), p.velocity);
+                let moved = add(point_on_ray(self.origin, grid.dirs[ray], p.depth), scale(p.velocity, step));
                 let Some([u, v]) = reference.project(moved) else { continue };
                 let (x, y) = (u.round(), v.round());
                 if !(x >= 0.0 && y >= 0.0 && x < w as f32 && y < h as f32) {
@@ -746,6 +777,7 @@ impl SceneFlowEngine {
                 cameras: &self.cameras,
                 reference: self.reference,
                 weight: self.config.skin_weight * std::f32::consts::LN_10,
+                drop_worst: self.config.skin_drop_worst_view,
             }),
             best_prev: &self.best,
             top_level: level + 1 == self.config.pyramid_levels,
@@ -967,6 +999,8 @@ struct SkinTerm<'a> {
     reference: usize,
     /// `skin_weight * ln 10`.
     weight: f32,
+    /// Leave out the least skin-like view when two or more others see the point.
+    drop_worst: bool,
 }
 
 impl SkinTerm<'_> {
@@ -976,7 +1010,7 @@ impl SkinTerm<'_> {
     /// say nothing.
     #[inline]
     fn log_weight(&self, pos: [f32; 3]) -> f32 {
-        let mut h = 0.0;
+        let (mut h, mut worst, mut seen) = (0.0, f32::INFINITY, 0);
         for (q, ((map, proj), cam)) in self.maps.iter().zip(self.projections).zip(self.cameras).enumerate() {
             if q == self.reference {
                 continue;
@@ -984,8 +1018,14 @@ impl SkinTerm<'_> {
             let Some([u, v]) = proj.project(pos) else { continue };
             let (x, y) = (u.round(), v.round());
             if x >= 0.0 && y >= 0.0 && x < cam.width as f32 && y < cam.height as f32 {
-                h += map[y as usize * cam.width as usize + x as usize];
+                let hq = map[y as usize * cam.width as usize + x as usize];
+                h += hq;
+                worst = worst.min(hq);
+                seen += 1;
             }
+        }
+        if self.drop_worst && seen >= 2 {
+            h -= worst;
         }
         self.weight * h
     }
@@ -1320,4 +1360,63 @@ fn point_on_ray(origin: [f32; 3], dir: [f32; 3], depth: f32) -> [f32; 3] {
 #[inline(always)]
 fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+fn scale(a: [f32; 3], k: f32) -> [f32; 3] {
+    [a[0] * k, a[1] * k, a[2] * k]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use handflow_protocol::Distortion;
+    use nalgebra::{Matrix3, Rotation3, Vector3};
+
+    fn camera(name: &str, x: f64) -> Camera {
+        let k = Matrix3::new(50.0, 0.0, 15.5, 0.0, 50.0, 11.5, 0.0, 0.0, 1.0);
+        Camera::new(name, 32, 24, k, Distortion::default(), Rotation3::identity(), Vector3::new(-x, 0.0, 0.0))
+            .expect("valid camera")
+    }
+
+    /// Skin term over a reference and two other views whose skin maps are uniform.
+    fn log_weight(others: [f32; 2], drop_worst: bool) -> f32 {
+        let cameras = vec![camera("ref", 0.0), camera("a", 0.2), camera("b", -0.2)];
+        let maps = vec![vec![5.0; 32 * 24], vec![others[0]; 32 * 24], vec![others[1]; 32 * 24]];
+        let projections: Vec<LevelProjection> = cameras.iter().map(|c| LevelProjection::new(c, 0)).collect();
+        let term = SkinTerm {
+            maps: &maps,
+            projections: &projections,
+            cameras: &cameras,
+            reference: 0,
+            weight: 1.0,
+            drop_worst,
+        };
+        term.log_weight([0.0, 0.0, 3.0])
+    }
+
+    #[test]
+    fn the_skin_term_leaves_out_the_reference_and_optionally_the_least_skin_like_view() {
+        assert_eq!(log_weight([1.0, -2.0], false), -1.0, "the sum over the other views");
+        // An occluder in front of the skin in one view: that view's verdict is dropped.
+        assert_eq!(log_weight([1.0, -2.0], true), 1.0);
+        assert_eq!(log_weight([-1.0, 0.5], true), 0.5);
+    }
+
+    #[test]
+    fn with_a_single_other_view_nothing_is_dropped() {
+        let cameras = vec![camera("ref", 0.0), camera("a", 0.2)];
+        let maps = vec![vec![5.0; 32 * 24], vec![-2.0; 32 * 24]];
+        let projections: Vec<LevelProjection> = cameras.iter().map(|c| LevelProjection::new(c, 0)).collect();
+        let term = SkinTerm {
+            maps: &maps,
+            projections: &projections,
+            cameras: &cameras,
+            reference: 0,
+            weight: 2.0,
+            drop_worst: true,
+        };
+        assert_eq!(term.log_weight([0.0, 0.0, 3.0]), -4.0);
+        // Behind the cameras: no view sees it, no evidence.
+        assert_eq!(term.log_weight([0.0, 0.0, -3.0]), 0.0);
+    }
 }

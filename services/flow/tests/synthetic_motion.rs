@@ -77,6 +77,12 @@ fn run(variant: Variant, temporal: Temporal) -> (f64, f64, f64) {
 fn run_with(variant: Variant, temporal: Temporal, cameras: Vec<Camera>) -> (f64, f64, f64) {
     let config =
         EngineConfig { temporal, depth_range: (2.0, 10.0), speed_bound: 0.2, ..EngineConfig::for_variant(variant) };
+    run_config(config, cameras).0
+}
+
+/// Median depth, vx and vy errors of the first estimate, and the likelihood evaluations it took.
+fn run_config(config: EngineConfig, cameras: Vec<Camera>) -> ((f64, f64, f64), u64) {
+    let temporal = config.temporal;
     let mut engine = SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine");
     let frames = if temporal == Temporal::TwoFrame { 2 } else { 3 };
     let mut done = false;
@@ -103,7 +109,25 @@ fn run_with(variant: Variant, temporal: Temporal, cameras: Vec<Camera>) -> (f64,
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
-    (median(&mut depth_err), median(&mut vx_err), median(&mut vy_err))
+    ((median(&mut depth_err), median(&mut vx_err), median(&mut vy_err)), engine.stats().evaluations)
+}
+
+#[test]
+fn cold_start_passes_refine_a_first_frame_from_its_own_posterior() {
+    let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
+    let config = EngineConfig {
+        temporal: Temporal::TwoFrame,
+        depth_range: (2.0, 10.0),
+        speed_bound: 0.2,
+        ..EngineConfig::for_variant(Variant::Paper)
+    };
+    let (once, once_evaluations) = run_config(config.clone(), cameras.clone());
+    let (settled, settled_evaluations) = run_config(EngineConfig { cold_start_passes: 3, ..config }, cameras);
+    eprintln!("one pass {once:?} ({once_evaluations} evaluations), four {settled:?} ({settled_evaluations})");
+    // Every pass is a whole coarse-to-fine run.
+    assert!(settled_evaluations > 3 * once_evaluations, "{settled_evaluations} vs {once_evaluations}");
+    assert!(settled.0 <= once.0, "depth error {} after the passes, {} before", settled.0, once.0);
+    assert!(settled.1 <= once.1 && settled.2 <= once.2, "velocity error {settled:?} vs {once:?}");
 }
 
 // Tolerances in image terms: at depth 4 and f = 100, 0.1 depth is 0.25 px of disparity
