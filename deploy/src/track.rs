@@ -21,6 +21,10 @@ use crate::recording_flow::{recording_engine_config, recording_fps, reference_ca
 /// Frames between detecting faces on a frame and using the models adapted to them.
 pub const MODEL_LAG: u64 = 5;
 
+/// The largest half-thickness the centre correction assumes for a hand, metres: an adult
+/// palm is 2-4 cm thick, a loose fist a little more.
+pub const HAND_HALF_THICKNESS_M: f64 = 0.02;
+
 /// What to run.
 #[derive(Clone, Debug)]
 pub struct TrackOptions {
@@ -228,20 +232,19 @@ impl ClusterStage {
         let raw = fit.clone();
         if let (Some(fit), true) = (fit.as_mut(), self.centre_correction) {
             for c in fit.components.iter_mut() {
-                surface_to_centre(c, &self.eye, self.em.min_std, self.ray_spread_var);
+                surface_to_centre(c, &self.eye, self.em.min_std, self.ray_spread_var, HAND_HALF_THICKNESS_M);
             }
         }
         let mut tracks = self.tracker.update(t, fit.as_ref());
         // The head's skin is its face, a shallow cap of a nearly round object: its depth spread
         // says little about its size, so its centre comes from the spread across the view.
         if let (Some(fit), Some(raw), true) = (&fit, &raw, self.centre_correction) {
-            if tracks[0].state == State::Tracked {
-                if let Some(j) = fit.components.iter().position(|c| c.position == tracks[0].position) {
-                    let mut head = raw.components[j];
-                    surface_to_centre(&mut head, &self.eye, self.em.min_std, f64::INFINITY);
-                    tracks[0].position = head.position;
-                    self.tracker.set_position(0, head.position);
-                }
+            if let (State::Tracked, Some(m)) = (tracks[0].state, self.tracker.assigned()[0]) {
+                let mut head = raw.components[m.cluster];
+                surface_to_centre(&mut head, &self.eye, self.em.min_std, f64::INFINITY, f64::INFINITY);
+                // By the share of the measurement the tracker took.
+                tracks[0].position += (head.position - fit.components[m.cluster].position) * m.pull;
+                self.tracker.set_position(0, tracks[0].position);
             }
         }
         let objects: BTreeMap<String, ObjectSample> = OBJECTS
@@ -324,7 +327,16 @@ impl ClusterStage {
 /// the second estimate. `min_std` is the floor EM added to every variance and
 /// `ray_spread_var` the variance a ray's particles have along it (the filter's own
 /// uncertainty, not the object's depth): both are taken out of the depth spread first.
-pub fn surface_to_centre(c: &mut Component, eye: &Point3<f64>, min_std: f64, ray_spread_var: f64) {
+/// `max_depth_radius` bounds the result by what the object can be: depth noise the
+/// filter's spread does not account for still widens the depth estimate, and a hand's
+/// spread across the view is its width, not its thickness.
+pub fn surface_to_centre(
+    c: &mut Component,
+    eye: &Point3<f64>,
+    min_std: f64,
+    ray_spread_var: f64,
+    max_depth_radius: f64,
+) {
     let Some(sight) = (c.position - eye.coords).try_normalize(1e-9) else { return };
     let p = c.covariance.fixed_view::<3, 3>(0, 0);
     let floor = min_std * min_std;
@@ -337,5 +349,5 @@ pub fn surface_to_centre(c: &mut Component, eye: &Point3<f64>, min_std: f64, ray
     } else {
         f64::INFINITY
     };
-    c.position += sight * (2.0 / 3.0) * r_across.min(r_along);
+    c.position += sight * (2.0 / 3.0) * r_across.min(r_along).min(max_depth_radius);
 }

@@ -58,6 +58,16 @@ pub struct TrackerConfig {
     /// is the prediction): one frame's velocity, perhaps from a blob of two hands, cannot
     /// reverse a track.
     pub velocity_gain: f64,
+    /// A cluster holding less of the weight than its track usually has is part of the
+    /// object (a hand half hidden behind the other, or leaving the reference view): its
+    /// centroid is biased towards the visible part. Between these shares of the track's
+    /// typical mass (default 0.25 and 0.75) the measurement's pull on position and velocity
+    /// rises from none (the prediction) to all.
+    pub partial_mass_share: (f64, f64),
+    /// Rate at which a track's typical mass follows its measurements (default 0.1 per frame:
+    /// a hand turning edge-on over a third of a second is followed, a one-frame occlusion
+    /// is not).
+    pub typical_mass_rate: f64,
 }
 
 impl Default for TrackerConfig {
@@ -70,6 +80,8 @@ impl Default for TrackerConfig {
             merge_distance_m: 0.04,
             split_distance_m: 0.15,
             velocity_gain: 0.5,
+            partial_mass_share: (0.25, 0.75),
+            typical_mass_rate: 0.1,
         }
     }
 }
@@ -87,6 +99,18 @@ pub struct Track {
     pub state: State,
     /// Frames since the last measurement.
     pub unmeasured: u32,
+    /// The weight the track's clusters usually hold (a running mean).
+    pub typical_mass: f64,
+}
+
+/// How a cluster measured a track.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Measurement {
+    /// Index into the fit's components.
+    pub cluster: usize,
+    /// Share of the way from the prediction to the cluster the track moved (below 1 for a
+    /// partly hidden object, see [`TrackerConfig::partial_mass_share`]).
+    pub pull: f64,
 }
 
 /// Labels clusters into the three tracks and predicts them.
@@ -98,6 +122,8 @@ pub struct Tracker {
     tracks: Option<[Track; 3]>,
     time: f64,
     reinitialisations: u64,
+    /// Per track, the cluster that measured it in the last update.
+    assigned: [Option<Measurement>; 3],
 }
 
 impl Tracker {
@@ -111,7 +137,14 @@ impl Tracker {
             tracks: None,
             time: 0.0,
             reinitialisations: 0,
+            assigned: [None; 3],
         }
+    }
+
+    /// Per track (head, left hand, right hand), the cluster that measured it in the last
+    /// update (`None`: predicted or lost).
+    pub fn assigned(&self) -> [Option<Measurement>; 3] {
+        self.assigned
     }
 
     /// The tracks after the last update (`None` before the first measurement).
@@ -149,21 +182,24 @@ impl Tracker {
     /// Takes the clusters of the frame at time `t` (or none, when the frame had no usable
     /// point) and returns the three tracks.
     pub fn update(&mut self, t: f64, fit: Option<&EmFit>) -> [Track; 3] {
-        let clusters: Vec<&Component> = match fit {
+        let (indices, clusters): (Vec<usize>, Vec<&Component>) = match fit {
             Some(f) => {
                 let total: f64 = f.components.iter().map(|c| c.mass).sum();
                 f.components
                     .iter()
-                    .filter(|c| !c.empty && total > 0.0 && c.mass / total >= self.config.min_mass_share)
-                    .collect()
+                    .enumerate()
+                    .filter(|(_, c)| !c.empty && total > 0.0 && c.mass / total >= self.config.min_mass_share)
+                    .unzip()
             }
-            None => Vec::new(),
+            None => (Vec::new(), Vec::new()),
         };
+        self.assigned = [None; 3];
         let tracks = match self.predictions(t) {
             Some(predicted) => self.follow(predicted, &clusters),
             None => self.start(&clusters),
         };
         self.time = t;
+        self.assigned = self.assigned.map(|a| a.map(|m| Measurement { cluster: indices[m.cluster], ..m }));
         if let Some(tracks) = tracks {
             self.tracks = Some(tracks);
         }
@@ -174,6 +210,7 @@ impl Tracker {
                 confidence: 0.0,
                 state: State::Lost,
                 unmeasured: 0,
+                typical_mass: 0.0,
             }; 3],
         )
     }
@@ -192,6 +229,7 @@ impl Tracker {
         hands.truncate(2);
         let side = |k: usize| clusters[k].position.dot(&self.signer_left);
         let (left, right) = if side(hands[0]) >= side(hands[1]) { (hands[0], hands[1]) } else { (hands[1], hands[0]) };
+        self.assigned = [head, left, right].map(|cluster| Some(Measurement { cluster, pull: 1.0 }));
         Some([head, left, right].map(|k| measured(clusters[k], 1.0)))
     }
 
@@ -261,6 +299,7 @@ impl Tracker {
                 best.0[k] = Some(i);
             }
         }
+        self.assigned = [None; 3];
         let mut out = previous;
         for k in 0..3 {
             let (p, v) = predicted[k];
@@ -270,12 +309,21 @@ impl Tracker {
                     let distance = (c.position - p).norm();
                     if distance > self.config.reinit_distance_m {
                         self.reinitialisations += 1;
+                        self.assigned[k] = Some(Measurement { cluster: i, pull: 1.0 });
                         measured(c, 0.5)
                     } else {
                         let agreement = (-0.5 * (distance / (0.5 * self.config.reinit_distance_m)).powi(2)).exp();
-                        let mut track = measured(c, agreement);
+                        let typical = previous[k].typical_mass;
+                        let (low, high) = self.config.partial_mass_share;
+                        let share = if typical > 0.0 { c.mass / typical } else { 1.0 };
+                        let pull = ((share - low) / (high - low).max(1e-9)).clamp(0.0, 1.0);
+                        let mut track = measured(c, agreement * (0.5 + 0.5 * pull));
                         let g = self.config.velocity_gain.clamp(0.0, 1.0);
-                        track.velocity = v + (c.velocity - v) * g;
+                        track.position = p + (c.position - p) * pull;
+                        track.velocity = v + (c.velocity - v) * g * pull;
+                        let rate = self.config.typical_mass_rate.clamp(0.0, 1.0);
+                        track.typical_mass = typical + (c.mass - typical) * rate;
+                        self.assigned[k] = Some(Measurement { cluster: i, pull });
                         track
                     }
                 }
@@ -288,6 +336,7 @@ impl Tracker {
                             confidence: 0.0,
                             state: State::Lost,
                             unmeasured,
+                            typical_mass: previous[k].typical_mass,
                         }
                     } else {
                         Track {
@@ -296,6 +345,7 @@ impl Tracker {
                             confidence: previous[k].confidence * 0.8,
                             state: State::Predicted,
                             unmeasured,
+                            typical_mass: previous[k].typical_mass,
                         }
                     }
                 }
@@ -312,6 +362,7 @@ fn measured(c: &Component, confidence: f64) -> Track {
         confidence: confidence.clamp(0.0, 1.0),
         state: State::Tracked,
         unmeasured: 0,
+        typical_mass: c.mass,
     }
 }
 
@@ -410,6 +461,31 @@ mod tests {
         assert_eq!(tracks[2].state, State::Tracked);
         assert!((tracks[2].position - back.position).norm() < 1e-12);
         assert_eq!(t.reinitialisations(), 1);
+    }
+
+    #[test]
+    fn a_half_hidden_hand_follows_its_prediction_not_its_biased_fragment() {
+        let mut t = tracker();
+        let dt = 1.0 / 30.0;
+        let head = || cluster(0.0, 1.6, 0.0, 2.0);
+        // The right hand moves at 0.3 m/s along x; five frames establish mass and velocity.
+        let right = |time: f64, dx: f64, mass: f64| cluster(-0.2 + 0.3 * time + dx, 1.0, 0.3, mass);
+        for f in 0..5 {
+            let time = f as f64 * dt;
+            t.update(time, Some(&fit(vec![head(), cluster(0.2, 1.0, 0.0, 1.0), right(time, 0.0, 1.0)])));
+        }
+        // Half of it disappears behind the other hand: its fragment's centroid is 3 cm off.
+        let time = 5.0 * dt;
+        let tracks = t.update(time, Some(&fit(vec![head(), cluster(0.2, 1.0, 0.0, 1.0), right(time, 0.03, 0.3)])));
+        let truth = -0.2 + 0.3 * time;
+        let pull = t.assigned()[2].expect("the fragment measures the right hand").pull;
+        assert!(pull < 0.2, "a 30 % fragment should barely pull, pulled {pull}");
+        assert!((tracks[2].position.x - truth).abs() < 0.01, "{} vs {truth}", tracks[2].position.x);
+        assert_eq!(tracks[2].state, State::Tracked);
+        // Whole again: measured in full.
+        let time = 6.0 * dt;
+        t.update(time, Some(&fit(vec![head(), cluster(0.2, 1.0, 0.0, 1.0), right(time, 0.0, 1.0)])));
+        assert_eq!(t.assigned()[2].map(|m| m.pull), Some(1.0));
     }
 
     #[test]
