@@ -8,85 +8,31 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use handflow_flow::skin_adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
-use handflow_flow::{Coverage, DenseField, EngineConfig, SceneFlowEngine, Temporal, Variant};
+use handflow_flow::stream::{stream_engine_config, STREAM_DEPTH_RANGE_M, STREAM_SPEED_BOUND_M_S, WARM_UP_ROUNDS};
+use handflow_flow::{DenseField, EngineConfig, SceneFlowEngine, Temporal, Variant};
 use handflow_ingest::synthetic::MASKS_DIR;
 use handflow_ingest::Recording;
-use handflow_protocol::{Camera, Rig};
+use handflow_protocol::Camera;
 
 use crate::flow_eval::apply_overrides;
 
-/// Camera-frame depths the engine searches on a recording, metres: a signer is between half
-/// a metre and five metres from the cameras of an HCI rig.
-pub const RECORDING_DEPTH_RANGE_M: (f32, f32) = (0.5, 5.0);
-/// Fastest motion searched, metres per second (a fast sign: hands move up to about 3 m/s).
-pub const RECORDING_SPEED_BOUND_M_S: f32 = 3.0;
-/// Frames of the recording used to adapt the skin models before the first estimate.
-pub const WARM_UP_ROUNDS: usize = 3;
-
-/// Scene Particles per ray on recordings: 8 instead of 10 costs no measurable accuracy on
-/// the rendered presets and buys 15% of the time.
-pub const RECORDING_PARTICLES_PER_RAY: usize = 8;
-
-/// Extra passes over a stream's first frame: without them the face's depth takes about
-/// five frames to settle and the head starts 4-6 cm too far back (measured on
-/// `signer-3cam`: head agreement 98.0 % with none, 99.3 % with 2, 100 % with 4 and 8; 8
-/// costs about 0.25 s once).
-pub const RECORDING_COLD_START_PASSES: usize = 8;
-
-/// The engine configuration for trajectories on a recording: the variant's defaults, skin
-/// coverage, the forwards/backwards likelihood, the search space of a signer at the rig's
-/// frame rate, the half-resolution grid (a quarter of the rays is plenty of points for
-/// clustering), 2 extra coarse loops instead of 7 once the previous frame's posterior is
-/// the prior (it replaces most of the exploration a first frame needs), extra passes over
-/// the first frame ([`RECORDING_COLD_START_PASSES`]), no weighted-median
-/// refinement (on the half-resolution grid its 9x9 window spans two palm widths' worth of
-/// edges and measurably moved points off the hands), then the overrides (`field=value`).
-/// BENCHMARKS.md has the measurements behind each choice.
+/// The engine configuration for trajectories on a recording: the stream configuration
+/// ([`stream_engine_config`], where each choice is explained) at the recording's frame
+/// rate, then the overrides (`field=value`).
 pub fn recording_engine_config(
     variant: Variant,
     particles_per_ray: Option<usize>,
     fps: f64,
     overrides: &[String],
 ) -> Result<EngineConfig> {
-    let defaults = EngineConfig::for_variant(variant);
-    let config = EngineConfig {
-        particles_per_ray: particles_per_ray.unwrap_or(RECORDING_PARTICLES_PER_RAY),
-        finest_level: 1,
-        warm_coarse_extra_loops: Some(2.min(defaults.coarse_extra_loops)),
-        cold_start_passes: RECORDING_COLD_START_PASSES,
-        refine_radius: 0,
-        coverage: Coverage::Skin,
-        temporal: Temporal::ForwardsBackwards,
-        depth_range: RECORDING_DEPTH_RANGE_M,
-        speed_bound: RECORDING_SPEED_BOUND_M_S / fps.max(1.0) as f32,
-        ..defaults
-    };
-    let config = apply_overrides(config, overrides)?;
+    let config = apply_overrides(stream_engine_config(variant, particles_per_ray, fps), overrides)?;
     config.validate().map_err(anyhow::Error::msg)?;
     Ok(config)
 }
 
-/// The camera whose optical axis is closest to the rig's mean viewing direction: the most
-/// frontal view of what the rig looks at, which sees most of what the others see.
-pub fn reference_camera(rig: &Rig) -> usize {
-    let axis = |c: &Camera| c.rotation.matrix().row(2).transpose();
-    let mean: nalgebra::Vector3<f64> = rig.cameras.iter().map(axis).sum();
-    rig.cameras
-        .iter()
-        .enumerate()
-        .max_by(|(_, a), (_, b)| axis(a).dot(&mean).total_cmp(&axis(b).dot(&mean)))
-        .map_or(0, |(i, _)| i)
-}
-
 /// Frame rate of a recording from its timestamps (30 when it has fewer than two frames).
 pub fn recording_fps(rec: &Recording) -> f64 {
-    let frames = rec.frames();
-    match (frames.first(), frames.last()) {
-        (Some(a), Some(b)) if frames.len() > 1 && b.timestamp > a.timestamp => {
-            (frames.len() - 1) as f64 / (b.timestamp - a.timestamp)
-        }
-        _ => 30.0,
-    }
+    rec.frame_rate()
 }
 
 /// What `handflow bench flow --recording` measured.
@@ -146,7 +92,7 @@ pub fn bench_recording(
     let rec = Recording::open(dir)?;
     let rig = rec.rig().clone();
     let config = recording_engine_config(variant, particles_per_ray, recording_fps(&rec), overrides)?;
-    let reference = reference_camera(&rig);
+    let reference = rig.most_frontal_camera();
     let skin_weight = config.skin_weight;
     let mut engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let frames = max_frames.unwrap_or(rec.len()).min(rec.len());
@@ -227,8 +173,8 @@ const BASELINE_FRAMES: usize = 3;
 fn dense_seconds_per_frame(rec: &Recording, reference: usize, buf: &mut [u8]) -> Result<f64> {
     let config = EngineConfig {
         temporal: Temporal::ForwardsBackwards,
-        depth_range: RECORDING_DEPTH_RANGE_M,
-        speed_bound: RECORDING_SPEED_BOUND_M_S / recording_fps(rec).max(1.0) as f32,
+        depth_range: STREAM_DEPTH_RANGE_M,
+        speed_bound: STREAM_SPEED_BOUND_M_S / recording_fps(rec).max(1.0) as f32,
         ..EngineConfig::default()
     };
     let mut engine = SceneFlowEngine::new(config, rec.rig().cameras.clone(), reference)?;

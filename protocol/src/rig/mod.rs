@@ -93,6 +93,19 @@ impl Rig {
         })
     }
 
+    /// Index of the camera whose optical axis is closest to the rig's mean viewing
+    /// direction: the most frontal view of what the rig looks at, which sees most of what
+    /// the others see (0 for an empty rig).
+    pub fn most_frontal_camera(&self) -> usize {
+        let axis = |c: &Camera| c.rotation.matrix().row(2).transpose();
+        let mean: nalgebra::Vector3<f64> = self.cameras.iter().map(axis).sum();
+        self.cameras
+            .iter()
+            .enumerate()
+            .max_by(|(_, a), (_, b)| axis(a).dot(&mean).total_cmp(&axis(b).dot(&mean)))
+            .map_or(0, |(i, _)| i)
+    }
+
     /// The camera called `name`, if any.
     pub fn camera(&self, name: &str) -> Option<&Camera> {
         self.cameras.iter().find(|camera| camera.name == name)

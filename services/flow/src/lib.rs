@@ -22,6 +22,7 @@ pub mod refine;
 pub mod rng;
 pub mod skin;
 pub mod skin_adapt;
+pub mod stream;
 
 pub use config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
 pub use engine::{DenseField, FlowError, FrameStats, SceneFlowEngine};

@@ -235,6 +235,17 @@ impl Recording {
         &self.rig
     }
 
+    /// Frame rate from the timestamps, frames per second (30 when there are fewer than two
+    /// frames or the timestamps do not increase).
+    pub fn frame_rate(&self) -> f64 {
+        match (self.frames.first(), self.frames.last()) {
+            (Some(a), Some(b)) if self.frames.len() > 1 && b.timestamp > a.timestamp => {
+                (self.frames.len() - 1) as f64 / (b.timestamp - a.timestamp)
+            }
+            _ => 30.0,
+        }
+    }
+
     /// Every frame, in order.
     pub fn frames(&self) -> &[FrameEntry] {
         &self.frames

@@ -1,13 +1,19 @@
-//! handflow's trajectory-publisher stage: trajectory records and their file sinks.
+//! handflow's trajectory-publisher stage: labelled clusters become trajectory samples for
+//! subscribers and records for files.
 //!
-//! For now this is the record of one frame's trajectory estimates and the JSON Lines sink
-//! that writes them, one object per frame; shared-memory publishing builds on it.
+//! [`TrajectoryRecord`] is one frame's estimates as the JSON Lines file holds them,
+//! [`JsonLinesSink`] writes them, [`trajectory_sample`] turns a frame's labelled clusters
+//! into the sample subscribers receive, and [`SequenceGaps`] counts the frames lost
+//! upstream from the gaps in the ingest sequence.
 
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
 use std::collections::BTreeMap;
 use std::io::Write;
 
+use handflow_protocol::messages::{
+    track_state, ClusterSet, TrajectoryObject, TrajectorySample, OBJECT_LABELS, PROTOCOL_VERSION,
+};
 use serde::{Deserialize, Serialize};
 
 /// Tracking state of one object.
@@ -44,6 +50,85 @@ pub struct TrajectoryRecord {
     pub t: f64,
     /// Objects by label (`head`, `left_hand`, `right_hand`).
     pub objects: BTreeMap<String, ObjectSample>,
+}
+
+impl TrackState {
+    /// The state of a wire [`track_state`] constant (unknown values are `Lost`).
+    pub fn from_wire(state: u32) -> Self {
+        match state {
+            track_state::TRACKED => TrackState::Tracked,
+            track_state::PREDICTED => TrackState::Predicted,
+            _ => TrackState::Lost,
+        }
+    }
+}
+
+impl TrajectoryRecord {
+    /// The record of a trajectory sample.
+    pub fn from_sample(sample: &TrajectorySample) -> Self {
+        let objects = OBJECT_LABELS
+            .iter()
+            .zip(&sample.objects)
+            .map(|(label, o)| {
+                let object = ObjectSample {
+                    pos: o.position,
+                    vel: o.velocity,
+                    confidence: o.confidence,
+                    state: TrackState::from_wire(o.state),
+                };
+                ((*label).to_owned(), object)
+            })
+            .collect();
+        Self { frame: sample.frame, t: sample.timestamp_s, objects }
+    }
+}
+
+/// The trajectory sample of a frame's labelled clusters.
+pub fn trajectory_sample(set: &ClusterSet, dropped_frames: u64, published_unix_ns: u64) -> TrajectorySample {
+    TrajectorySample {
+        protocol_version: PROTOCOL_VERSION,
+        flags: set.flags,
+        sequence: set.sequence,
+        frame: set.frame,
+        timestamp_s: set.timestamp_s,
+        capture_unix_ns: set.capture_unix_ns,
+        published_unix_ns,
+        dropped_frames,
+        objects: set.objects.map(|c| TrajectoryObject {
+            position: c.position,
+            velocity: c.velocity,
+            confidence: c.confidence,
+            state: c.state,
+            reserved: 0,
+        }),
+    }
+}
+
+/// Frames lost upstream, from the ingest sequence numbers that reach the last stage. A
+/// forwards/backwards engine never estimates the first frame of a stream it joins, so the
+/// first sequence seen is where counting starts.
+#[derive(Clone, Debug, Default)]
+pub struct SequenceGaps {
+    next: Option<u64>,
+    lost: u64,
+}
+
+impl SequenceGaps {
+    /// Notes sequence `sequence` arriving; returns the sequences lost just before it.
+    pub fn arrive(&mut self, sequence: u64) -> std::ops::Range<u64> {
+        let gap = match self.next {
+            Some(next) if sequence > next => next..sequence,
+            _ => sequence..sequence,
+        };
+        self.lost += gap.end - gap.start;
+        self.next = Some(self.next.map_or(sequence + 1, |n| n.max(sequence + 1)));
+        gap
+    }
+
+    /// Frames lost so far.
+    pub fn lost(&self) -> u64 {
+        self.lost
+    }
 }
 
 /// Writes records as JSON Lines, one object per line, flushed per record so a reader

@@ -1,0 +1,478 @@
+//! The services on iceoryx2: their names, their settings in each delivery [`Mode`], and the
+//! ports a stage opens on them. Every stage opens a service through these functions, so
+//! creator and openers always agree on its settings (iceoryx2 refuses a mismatch).
+//!
+//! Each publish-subscribe service has an event service of the same name beside it: a
+//! publisher notifies after every send, and a subscriber's WaitSet wakes on that event
+//! instead of polling.
+
+use std::fmt;
+use std::str::FromStr;
+use std::time::{Duration, Instant};
+
+use iceoryx2::node::Node;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::port::BackpressureAction;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
+use iceoryx2::service::port_factory::PortFactory as _;
+use thiserror::Error;
+
+use crate::messages::{ClusterSet, FrameHeader, ParticleHeader, RigHeader, ScenePoint, TrajectorySample};
+
+/// The transport: processes on one machine.
+pub type Ipc = ipc::Service;
+
+/// How the stages deliver messages.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Mode {
+    /// Recordings: nothing is dropped; a publisher waits while a subscriber's buffer is full.
+    #[default]
+    Replay,
+    /// Cameras: latest wins; a subscriber that falls behind loses the oldest samples and
+    /// never slows its publisher.
+    Live,
+}
+
+impl Mode {
+    fn safe_overflow(self) -> bool {
+        self == Mode::Live
+    }
+}
+
+impl fmt::Display for Mode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Mode::Replay => "replay",
+            Mode::Live => "live",
+        })
+    }
+}
+
+impl FromStr for Mode {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "replay" => Ok(Mode::Replay),
+            "live" => Ok(Mode::Live),
+            other => Err(format!("unknown delivery mode `{other}` (expected `replay` or `live`)")),
+        }
+    }
+}
+
+/// A failure of the transport, with the service it happened on.
+#[derive(Debug, Error)]
+#[error("service `{service}`: {what}")]
+pub struct IpcError {
+    /// The service's name.
+    pub service: String,
+    /// What failed.
+    pub what: String,
+}
+
+impl IpcError {
+    /// An error on `service`.
+    pub fn new(service: impl Into<String>, what: impl fmt::Display) -> Self {
+        Self { service: service.into(), what: what.to_string() }
+    }
+}
+
+/// Default prefix of the service names.
+pub const DEFAULT_PREFIX: &str = "handflow";
+
+/// The services of one pipeline: `<prefix>/rig`, `<prefix>/frames`, `<prefix>/particles`,
+/// `<prefix>/clusters`, `<prefix>/trajectories`. Two pipelines with different prefixes run
+/// side by side on one machine.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ServiceNames {
+    prefix: String,
+}
+
+impl Default for ServiceNames {
+    fn default() -> Self {
+        Self::new(DEFAULT_PREFIX)
+    }
+}
+
+/// Suffixes of the services, in pipeline order.
+pub const SERVICE_SUFFIXES: [&str; 5] = ["rig", "frames", "particles", "clusters", "trajectories"];
+
+impl ServiceNames {
+    /// The services under `prefix`.
+    pub fn new(prefix: impl Into<String>) -> Self {
+        Self { prefix: prefix.into() }
+    }
+
+    /// The prefix.
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
+    /// `<prefix>/<suffix>`.
+    pub fn full(&self, suffix: &str) -> String {
+        format!("{}/{suffix}", self.prefix)
+    }
+
+    /// Rig calibration.
+    pub fn rig(&self) -> String {
+        self.full("rig")
+    }
+
+    /// Frame sets.
+    pub fn frames(&self) -> String {
+        self.full("frames")
+    }
+
+    /// Particle sets.
+    pub fn particles(&self) -> String {
+        self.full("particles")
+    }
+
+    /// Labelled clusters.
+    pub fn clusters(&self) -> String {
+        self.full("clusters")
+    }
+
+    /// Trajectory samples.
+    pub fn trajectories(&self) -> String {
+        self.full("trajectories")
+    }
+}
+
+fn service_name(name: &str) -> Result<ServiceName, IpcError> {
+    ServiceName::new(name).map_err(|e| IpcError::new(name, format!("not a valid service name: {e:?}")))
+}
+
+/// A node named after its stage. iceoryx2's own log (which warns about a missing config
+/// file in every process) is kept to errors unless `IOX2_LOG_LEVEL` says otherwise.
+pub fn create_node(stage: &str) -> Result<Node<Ipc>, IpcError> {
+    set_log_level_from_env_or(LogLevel::Error);
+    let name = NodeName::new(stage).map_err(|e| IpcError::new(stage, format!("not a valid node name: {e:?}")))?;
+    NodeBuilder::new()
+        .name(&name)
+        .create::<Ipc>()
+        .map_err(|e| IpcError::new(stage, format!("creating the node: {e:?}")))
+}
+
+/// Removes what dead processes left in shared memory (their ports stay registered, and a
+/// lossless publisher would wait on a dead subscriber forever). Returns how many dead
+/// nodes were cleaned.
+pub fn cleanup_dead_nodes(node: &Node<Ipc>) -> usize {
+    node.try_cleanup_dead_nodes().cleanups as usize
+}
+
+/// The sending end of a service: its publisher and the notifier that wakes subscribers.
+pub struct Output<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug + ZeroCopySend + 'static> {
+    /// The publisher.
+    pub publisher: Publisher<Ipc, P, H>,
+    notifier: Notifier<Ipc>,
+    service: PortFactory<Ipc, P, H>,
+    name: String,
+}
+
+impl<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug + ZeroCopySend + 'static> Output<P, H> {
+    /// Wakes every subscriber's WaitSet.
+    pub fn notify(&self) -> Result<(), IpcError> {
+        self.notifier.notify().map(|_| ()).map_err(|e| IpcError::new(&self.name, format!("notify: {e:?}")))
+    }
+
+    /// Subscribers connected to the service.
+    pub fn subscribers(&self) -> usize {
+        self.service.dynamic_config().number_of_subscribers()
+    }
+
+    /// Waits (sleeping, not spinning) until at least `count` subscribers are connected, then
+    /// connects to them, so that nothing sent afterwards is lost to a subscriber that has
+    /// not yet attached (`false` on timeout or termination request).
+    pub fn wait_for_subscribers(&self, node: &Node<Ipc>, count: usize, timeout: Duration) -> bool {
+        let started = Instant::now();
+        while self.subscribers() < count {
+            if started.elapsed() > timeout || node.wait(Duration::from_millis(5)).is_err() {
+                return false;
+            }
+        }
+        let _ = self.publisher.update_connections();
+        true
+    }
+
+    /// The service's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+}
+
+/// The receiving end of a service: its subscriber and the listener its WaitSet waits on.
+pub struct Input<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug + ZeroCopySend + 'static> {
+    /// The subscriber.
+    pub subscriber: Subscriber<Ipc, P, H>,
+    /// Woken by the publisher's notifier; attach it to a WaitSet.
+    pub listener: Listener<Ipc>,
+    name: String,
+}
+
+impl<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug + ZeroCopySend + 'static> Input<P, H> {
+    /// Consumes pending wake-ups (the samples are read with `subscriber.receive()`).
+    pub fn clear_events(&self) {
+        let _ = self.listener.try_wait(|_| {});
+    }
+
+    /// The service's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+}
+
+/// How long a lossless publisher sleeps between attempts to deliver into a full buffer:
+/// it waits for its subscriber without taking a core from it.
+const BACKPRESSURE_SLEEP: Duration = Duration::from_micros(500);
+
+fn publisher_builder_settings<P: ?Sized + fmt::Debug + IceoryxSend, H: fmt::Debug + ZeroCopySend>(
+    service: &PortFactory<Ipc, P, H>,
+    mode: Mode,
+) -> iceoryx2::service::port_factory::publisher::PortFactoryPublisher<'_, Ipc, P, H> {
+    let builder = service.publisher_builder().max_loaned_samples(2);
+    match mode {
+        Mode::Replay => builder
+            .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+            .set_backpressure_handler(|_: &iceoryx2::port::BackpressureInfo| {
+                std::thread::sleep(BACKPRESSURE_SLEEP);
+                BackpressureAction::Retry
+            }),
+        Mode::Live => builder.backpressure_strategy(BackpressureStrategy::DiscardData),
+    }
+}
+
+/// Settings of one service.
+#[derive(Clone, Copy, Debug)]
+struct Settings {
+    max_subscribers: usize,
+    buffer: usize,
+    borrowed: usize,
+    history: usize,
+}
+
+/// Frame sets are large (2.8 MB for three VGA views): few subscribers, small buffers.
+const FRAMES: Settings = Settings { max_subscribers: 4, buffer: 4, borrowed: 4, history: 0 };
+/// Particle sets.
+const PARTICLES: Settings = Settings { max_subscribers: 4, buffer: 4, borrowed: 2, history: 0 };
+/// Labelled clusters (small).
+const CLUSTERS: Settings = Settings { max_subscribers: 8, buffer: 16, borrowed: 2, history: 0 };
+/// Trajectory samples: any number of recognisers and viewers.
+const TRAJECTORIES: Settings = Settings { max_subscribers: 32, buffer: 64, borrowed: 4, history: 0 };
+
+macro_rules! open_service {
+    ($node:expr, $name:expr, $payload:ty, $header:ty, $settings:expr, $safe_overflow:expr) => {{
+        let name = service_name($name)?;
+        let builder = $node.service_builder(&name).publish_subscribe::<$payload>();
+        builder
+            .user_header::<$header>()
+            .max_publishers(2)
+            .max_subscribers($settings.max_subscribers)
+            .subscriber_max_buffer_size($settings.buffer)
+            .subscriber_max_borrowed_samples($settings.borrowed)
+            .history_size($settings.history)
+            .enable_safe_overflow($safe_overflow)
+            .open_or_create()
+            .map_err(|e| IpcError::new($name, format!("opening the service: {e:?}")))?
+    }};
+}
+
+fn event_service(
+    node: &Node<Ipc>,
+    name: &str,
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<Ipc>, IpcError> {
+    node.service_builder(&service_name(name)?)
+        .event()
+        .open_or_create()
+        .map_err(|e| IpcError::new(name, format!("opening the event service: {e:?}")))
+}
+
+fn output<P: ?Sized + fmt::Debug + IceoryxSend, H: fmt::Debug + ZeroCopySend>(
+    node: &Node<Ipc>,
+    name: String,
+    service: PortFactory<Ipc, P, H>,
+    publisher: Result<Publisher<Ipc, P, H>, iceoryx2::port::publisher::PublisherCreateError>,
+) -> Result<Output<P, H>, IpcError> {
+    let publisher = publisher.map_err(|e| IpcError::new(&name, format!("creating the publisher: {e:?}")))?;
+    let notifier = event_service(node, &name)?
+        .notifier_builder()
+        .create()
+        .map_err(|e| IpcError::new(&name, format!("creating the notifier: {e:?}")))?;
+    Ok(Output { publisher, notifier, service, name })
+}
+
+fn input<P: ?Sized + fmt::Debug + IceoryxSend, H: fmt::Debug + ZeroCopySend>(
+    node: &Node<Ipc>,
+    name: String,
+    service: &PortFactory<Ipc, P, H>,
+    buffer: usize,
+) -> Result<Input<P, H>, IpcError> {
+    // The listener first: a sample sent between the two would otherwise wake nobody.
+    let listener = event_service(node, &name)?
+        .listener_builder()
+        .create()
+        .map_err(|e| IpcError::new(&name, format!("creating the listener: {e:?}")))?;
+    let subscriber = service
+        .subscriber_builder()
+        .buffer_size(buffer)
+        .create()
+        .map_err(|e| IpcError::new(&name, format!("creating the subscriber: {e:?}")))?;
+    Ok(Input { subscriber, listener, name })
+}
+
+/// Buffer of a subscriber: latest only in live mode.
+fn buffer_for(mode: Mode, settings: Settings) -> usize {
+    match mode {
+        Mode::Replay => settings.buffer,
+        Mode::Live => 1,
+    }
+}
+
+/// Publisher of the rig calibration (history 1: late joiners get the last one).
+pub fn rig_output(node: &Node<Ipc>, names: &ServiceNames) -> Result<Output<[u8], RigHeader>, IpcError> {
+    let name = names.rig();
+    let service = rig_service(node, &name)?;
+    let publisher = service
+        .publisher_builder()
+        .initial_max_slice_len(4096)
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .create();
+    output(node, name, service, publisher)
+}
+
+/// Subscriber of the rig calibration.
+pub fn rig_input(node: &Node<Ipc>, names: &ServiceNames) -> Result<Input<[u8], RigHeader>, IpcError> {
+    let name = names.rig();
+    let service = rig_service(node, &name)?;
+    input(node, name, &service, 1)
+}
+
+fn rig_service(node: &Node<Ipc>, name: &str) -> Result<PortFactory<Ipc, [u8], RigHeader>, IpcError> {
+    // The rig is state, not a stream: latest wins in every mode.
+    let settings = Settings { max_subscribers: 32, buffer: 1, borrowed: 1, history: 1 };
+    Ok(open_service!(node, name, [u8], RigHeader, settings, true))
+}
+
+/// Publisher of frame sets of `frame_set_len` bytes.
+pub fn frames_output(
+    node: &Node<Ipc>,
+    names: &ServiceNames,
+    mode: Mode,
+    frame_set_len: usize,
+) -> Result<Output<[u8], FrameHeader>, IpcError> {
+    let name = names.frames();
+    let service = open_service!(node, &name, [u8], FrameHeader, FRAMES, mode.safe_overflow());
+    let publisher = publisher_builder_settings(&service, mode)
+        .initial_max_slice_len(frame_set_len.max(1))
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .create();
+    output(node, name, service, publisher)
+}
+
+/// Subscriber of frame sets.
+pub fn frames_input(node: &Node<Ipc>, names: &ServiceNames, mode: Mode) -> Result<Input<[u8], FrameHeader>, IpcError> {
+    let name = names.frames();
+    let service = open_service!(node, &name, [u8], FrameHeader, FRAMES, mode.safe_overflow());
+    input(node, name, &service, buffer_for(mode, FRAMES))
+}
+
+/// Points a particle publisher reserves at first; it grows in powers of two.
+const INITIAL_POINTS: usize = 1 << 16;
+
+/// Publisher of particle sets.
+pub fn particles_output(
+    node: &Node<Ipc>,
+    names: &ServiceNames,
+    mode: Mode,
+) -> Result<Output<[ScenePoint], ParticleHeader>, IpcError> {
+    let name = names.particles();
+    let service = open_service!(node, &name, [ScenePoint], ParticleHeader, PARTICLES, mode.safe_overflow());
+    let publisher = publisher_builder_settings(&service, mode)
+        .initial_max_slice_len(INITIAL_POINTS)
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .create();
+    output(node, name, service, publisher)
+}
+
+/// Subscriber of particle sets.
+pub fn particles_input(
+    node: &Node<Ipc>,
+    names: &ServiceNames,
+    mode: Mode,
+) -> Result<Input<[ScenePoint], ParticleHeader>, IpcError> {
+    let name = names.particles();
+    let service = open_service!(node, &name, [ScenePoint], ParticleHeader, PARTICLES, mode.safe_overflow());
+    input(node, name, &service, buffer_for(mode, PARTICLES))
+}
+
+/// Publisher of labelled clusters.
+pub fn clusters_output(node: &Node<Ipc>, names: &ServiceNames, mode: Mode) -> Result<Output<ClusterSet, ()>, IpcError> {
+    let name = names.clusters();
+    let service = open_service!(node, &name, ClusterSet, (), CLUSTERS, mode.safe_overflow());
+    let publisher = publisher_builder_settings(&service, mode).create();
+    output(node, name, service, publisher)
+}
+
+/// Subscriber of labelled clusters.
+pub fn clusters_input(node: &Node<Ipc>, names: &ServiceNames, mode: Mode) -> Result<Input<ClusterSet, ()>, IpcError> {
+    let name = names.clusters();
+    let service = open_service!(node, &name, ClusterSet, (), CLUSTERS, mode.safe_overflow());
+    input(node, name, &service, buffer_for(mode, CLUSTERS))
+}
+
+/// Publisher of trajectory samples.
+pub fn trajectories_output(
+    node: &Node<Ipc>,
+    names: &ServiceNames,
+    mode: Mode,
+) -> Result<Output<TrajectorySample, ()>, IpcError> {
+    let name = names.trajectories();
+    let service = open_service!(node, &name, TrajectorySample, (), TRAJECTORIES, mode.safe_overflow());
+    let publisher = publisher_builder_settings(&service, mode).create();
+    output(node, name, service, publisher)
+}
+
+/// Subscriber of trajectory samples.
+pub fn trajectories_input(
+    node: &Node<Ipc>,
+    names: &ServiceNames,
+    mode: Mode,
+) -> Result<Input<TrajectorySample, ()>, IpcError> {
+    let name = names.trajectories();
+    let service = open_service!(node, &name, TrajectorySample, (), TRAJECTORIES, mode.safe_overflow());
+    // Live subscribers keep a few samples: a recogniser wants the recent track, not one point.
+    let buffer = match mode {
+        Mode::Replay => TRAJECTORIES.buffer,
+        Mode::Live => 8,
+    };
+    input(node, name, &service, buffer)
+}
+
+/// Nanoseconds since the Unix epoch (0 if the clock is before it).
+pub fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn modes_parse_and_print() {
+        assert_eq!("live".parse::<Mode>().unwrap(), Mode::Live);
+        assert_eq!(Mode::Replay.to_string(), "replay");
+        assert!("fast".parse::<Mode>().unwrap_err().contains("`fast`"));
+    }
+
+    #[test]
+    fn service_names_share_the_prefix() {
+        let n = ServiceNames::new("test-1");
+        assert_eq!(n.frames(), "test-1/frames");
+        assert_eq!(n.trajectories(), "test-1/trajectories");
+    }
+}

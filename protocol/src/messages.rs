@@ -1,0 +1,534 @@
+//! The messages the stages exchange over shared memory: `#[repr(C)]` types that iceoryx2
+//! sends without copying or serialising (DESIGN.md, "Data flow").
+//!
+//! Variable-sized messages are a fixed header (an iceoryx2 user header) in front of a slice
+//! payload: the rig as TOML text, a frame set as the RGB8 bytes of every view, a particle set
+//! as [`ScenePoint`]s. Labelled clusters and trajectory samples are fixed-size. Every header
+//! carries [`PROTOCOL_VERSION`]; its `validate` method checks the version and that the header
+//! agrees with the payload it came with, and must pass before the payload is used.
+//!
+//! Each message also carries the ingest `sequence` of the frame set it derives from, so the
+//! last stage sees every frame lost anywhere upstream as a gap, and the capture time on the
+//! wall clock (`capture_unix_ns`), so it can measure glass-to-trajectory latency.
+
+// The derive emits `unsafe impl ZeroCopySend`: the types are `#[repr(C)]` plain data
+// without pointers, which is what the trait's contract asks for.
+#![allow(unsafe_code)]
+
+use iceoryx2::prelude::ZeroCopySend;
+use thiserror::Error;
+
+/// Version of the wire format; a stage refuses messages of any other version.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// `flags` bit: the stream has ended; the message carries no data (an empty payload).
+pub const END_OF_STREAM: u32 = 1;
+
+/// Pixel format of frame payloads: 8-bit RGB, row-major, views one after another.
+pub const PIXEL_FORMAT_RGB8: u32 = 1;
+
+/// Objects of the trajectory messages, in the order of their `objects` arrays.
+pub const OBJECT_LABELS: [&str; 3] = ["head", "left_hand", "right_hand"];
+
+/// A message that disagrees with itself or with this build.
+#[derive(Debug, Error, PartialEq)]
+pub enum MessageError {
+    /// Sent by a build speaking another protocol version.
+    #[error("{message}: protocol version {got}, this build speaks version {expected}")]
+    Version {
+        /// Message kind.
+        message: &'static str,
+        /// Version in the header.
+        got: u32,
+        /// [`PROTOCOL_VERSION`].
+        expected: u32,
+    },
+    /// A header field disagrees with the payload or is out of range.
+    #[error("{message} {sequence}: {field} {detail}")]
+    Field {
+        /// Message kind.
+        message: &'static str,
+        /// The message's sequence number.
+        sequence: u64,
+        /// The header field at fault.
+        field: &'static str,
+        /// What is wrong with it.
+        detail: String,
+    },
+}
+
+fn check_version(message: &'static str, got: u32) -> Result<(), MessageError> {
+    if got == PROTOCOL_VERSION {
+        Ok(())
+    } else {
+        Err(MessageError::Version { message, got, expected: PROTOCOL_VERSION })
+    }
+}
+
+fn field_error(message: &'static str, sequence: u64, field: &'static str, detail: String) -> MessageError {
+    MessageError::Field { message, sequence, field, detail }
+}
+
+/// Header of the rig calibration message; the payload is the rig file's TOML text
+/// ([`crate::Rig::to_toml_string`]). Published with history 1, so a stage that starts late
+/// still gets it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowRigHeader")]
+pub struct RigHeader {
+    /// [`PROTOCOL_VERSION`].
+    pub protocol_version: u32,
+    /// Incremented whenever the calibration changes; frame sets name the version they need.
+    pub rig_version: u32,
+    /// Nominal frame rate of the stream, frames per second.
+    pub frame_rate_hz: f64,
+    /// Length of the TOML text in bytes.
+    pub text_len: u64,
+}
+
+impl RigHeader {
+    /// Checks the version, the frame rate and the text length against a payload of
+    /// `payload_len` bytes.
+    pub fn validate(&self, payload_len: usize) -> Result<(), MessageError> {
+        const KIND: &str = "rig message";
+        check_version(KIND, self.protocol_version)?;
+        if !(self.frame_rate_hz.is_finite() && self.frame_rate_hz > 0.0) {
+            return Err(field_error(
+                KIND,
+                u64::from(self.rig_version),
+                "frame_rate_hz",
+                format!("is {}", self.frame_rate_hz),
+            ));
+        }
+        if self.text_len != payload_len as u64 {
+            return Err(field_error(
+                KIND,
+                u64::from(self.rig_version),
+                "text_len",
+                format!("says {} bytes, the payload has {payload_len}", self.text_len),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Header of a synchronised frame set; the payload holds every view's RGB8 pixels, in rig
+/// order, one after another.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowFrameHeader")]
+pub struct FrameHeader {
+    /// [`PROTOCOL_VERSION`].
+    pub protocol_version: u32,
+    /// [`PIXEL_FORMAT_RGB8`].
+    pub pixel_format: u32,
+    /// Position in the ingest stream, from 0, without gaps: gaps downstream are losses.
+    pub sequence: u64,
+    /// Frame number of the source (the recording's `frame` column).
+    pub frame: u64,
+    /// Stream time of the capture, seconds (the recording's `timestamp` column).
+    pub timestamp_s: f64,
+    /// Wall-clock time the frame set was captured (decoded or rendered), nanoseconds since
+    /// the Unix epoch.
+    pub capture_unix_ns: u64,
+    /// The rig calibration version the views belong to.
+    pub rig_version: u32,
+    /// Views in the payload.
+    pub view_count: u32,
+    /// Width of every view, pixels.
+    pub width: u32,
+    /// Height of every view, pixels.
+    pub height: u32,
+    /// [`END_OF_STREAM`] or 0.
+    pub flags: u32,
+    /// Reserved, 0.
+    pub reserved: u32,
+    /// Payload length, bytes.
+    pub payload_len: u64,
+}
+
+impl FrameHeader {
+    /// Bytes of one view.
+    pub fn view_len(&self) -> usize {
+        self.width as usize * self.height as usize * 3
+    }
+
+    /// Whether this message ends the stream.
+    pub fn is_end_of_stream(&self) -> bool {
+        self.flags & END_OF_STREAM != 0
+    }
+
+    /// Checks the version, the pixel format and that `view_count x width x height x 3`
+    /// equals the header's and the actual payload length (both 0 at the end of a stream).
+    pub fn validate(&self, payload_len: usize) -> Result<(), MessageError> {
+        const KIND: &str = "frame set";
+        check_version(KIND, self.protocol_version)?;
+        let err = |field, detail| Err(field_error(KIND, self.sequence, field, detail));
+        if self.payload_len != payload_len as u64 {
+            return err("payload_len", format!("says {} bytes, the payload has {payload_len}", self.payload_len));
+        }
+        if self.is_end_of_stream() {
+            return if payload_len == 0 { Ok(()) } else { err("flags", "end of stream with a payload".into()) };
+        }
+        if self.pixel_format != PIXEL_FORMAT_RGB8 {
+            return err("pixel_format", format!("is {}, only RGB8 ({PIXEL_FORMAT_RGB8}) is known", self.pixel_format));
+        }
+        let expected = (self.view_count as u64)
+            .checked_mul(self.width as u64)
+            .and_then(|n| n.checked_mul(self.height as u64))
+            .and_then(|n| n.checked_mul(3));
+        if self.view_count == 0 || self.width == 0 || self.height == 0 || expected != Some(payload_len as u64) {
+            return err(
+                "view_count",
+                format!(
+                    "{} views of {}x{} RGB8 do not fill a payload of {payload_len} bytes",
+                    self.view_count, self.width, self.height
+                ),
+            );
+        }
+        if !self.timestamp_s.is_finite() {
+            return err("timestamp_s", format!("is {}", self.timestamp_s));
+        }
+        Ok(())
+    }
+
+    /// The views of a validated payload.
+    pub fn views<'a>(&self, payload: &'a [u8]) -> Vec<&'a [u8]> {
+        let len = self.view_len().max(1);
+        payload.chunks_exact(len).take(self.view_count as usize).collect()
+    }
+}
+
+/// One weighted particle of the scene flow: a 3D point on a ray of the reference camera and
+/// its motion.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowScenePoint")]
+pub struct ScenePoint {
+    /// World position, metres.
+    pub position: [f32; 3],
+    /// World velocity, metres per frame.
+    pub velocity: [f32; 3],
+    /// The particle's weight times its ray's confidence.
+    pub weight: f32,
+    /// Skin probability of the ray's reference pixel under the adapted model, in [0, 1].
+    pub skin: f32,
+}
+
+/// Header of one frame's particle set; the payload is its [`ScenePoint`]s.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowParticleHeader")]
+pub struct ParticleHeader {
+    /// [`PROTOCOL_VERSION`].
+    pub protocol_version: u32,
+    /// [`END_OF_STREAM`] or 0.
+    pub flags: u32,
+    /// Ingest sequence of the frame the estimate is for.
+    pub sequence: u64,
+    /// Source frame number.
+    pub frame: u64,
+    /// Stream time, seconds.
+    pub timestamp_s: f64,
+    /// Capture wall-clock time, nanoseconds since the Unix epoch.
+    pub capture_unix_ns: u64,
+    /// Frame rate the velocities are per frame of, frames per second.
+    pub frame_rate_hz: f64,
+    /// Mean variance of a ray's particles along the ray, square metres: the filter's own
+    /// depth uncertainty, which clustering takes out of the objects' depth spread.
+    pub ray_spread_var: f64,
+    /// Points in the payload.
+    pub point_count: u64,
+    /// Seconds the scene-flow estimate took.
+    pub flow_seconds: f64,
+    /// The rig calibration version.
+    pub rig_version: u32,
+    /// Reference camera (index in the rig) whose rays the particles lie on.
+    pub reference_camera: u32,
+}
+
+impl ParticleHeader {
+    /// Whether this message ends the stream.
+    pub fn is_end_of_stream(&self) -> bool {
+        self.flags & END_OF_STREAM != 0
+    }
+
+    /// Checks the version, the frame rate, and the point count against a payload of
+    /// `points` points.
+    pub fn validate(&self, points: usize) -> Result<(), MessageError> {
+        const KIND: &str = "particle set";
+        check_version(KIND, self.protocol_version)?;
+        let err = |field, detail| Err(field_error(KIND, self.sequence, field, detail));
+        if self.point_count != points as u64 {
+            return err("point_count", format!("says {} points, the payload has {points}", self.point_count));
+        }
+        if self.is_end_of_stream() {
+            return Ok(());
+        }
+        if !(self.frame_rate_hz.is_finite() && self.frame_rate_hz > 0.0) {
+            return err("frame_rate_hz", format!("is {}", self.frame_rate_hz));
+        }
+        if !(self.ray_spread_var.is_finite() && self.ray_spread_var >= 0.0) {
+            return err("ray_spread_var", format!("is {}", self.ray_spread_var));
+        }
+        if !self.timestamp_s.is_finite() {
+            return err("timestamp_s", format!("is {}", self.timestamp_s));
+        }
+        Ok(())
+    }
+}
+
+/// Track states on the wire.
+pub mod track_state {
+    /// Measured this frame.
+    pub const TRACKED: u32 = 0;
+    /// Extrapolated by the motion model.
+    pub const PREDICTED: u32 = 1;
+    /// No usable estimate.
+    pub const LOST: u32 = 2;
+}
+
+/// One labelled cluster: a tracked object's state after this frame's measurement.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowLabelledCluster")]
+pub struct LabelledCluster {
+    /// World position of the object's middle, metres.
+    pub position: [f64; 3],
+    /// World velocity, metres per second.
+    pub velocity: [f64; 3],
+    /// Confidence in [0, 1].
+    pub confidence: f64,
+    /// Share of the frame's particle weight in the cluster assigned to the object (0 when
+    /// none was).
+    pub mass: f64,
+    /// A [`track_state`] constant.
+    pub state: u32,
+    /// Reserved, 0.
+    pub reserved: u32,
+}
+
+/// The labelled clusters of one frame, in [`OBJECT_LABELS`] order.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowClusterSet")]
+pub struct ClusterSet {
+    /// [`PROTOCOL_VERSION`].
+    pub protocol_version: u32,
+    /// [`END_OF_STREAM`] or 0.
+    pub flags: u32,
+    /// Ingest sequence of the frame.
+    pub sequence: u64,
+    /// Source frame number.
+    pub frame: u64,
+    /// Stream time, seconds.
+    pub timestamp_s: f64,
+    /// Capture wall-clock time, nanoseconds since the Unix epoch.
+    pub capture_unix_ns: u64,
+    /// Seconds clustering and labelling took.
+    pub cluster_seconds: f64,
+    /// Head, left hand, right hand.
+    pub objects: [LabelledCluster; 3],
+}
+
+fn validate_objects<const N: usize>(
+    kind: &'static str,
+    sequence: u64,
+    objects: impl Iterator<Item = ([f64; 3], [f64; 3], f64, u32)>,
+) -> Result<(), MessageError> {
+    for (label, (position, velocity, confidence, state)) in OBJECT_LABELS.iter().zip(objects).take(N) {
+        if !position.iter().chain(&velocity).all(|v| v.is_finite()) {
+            return Err(field_error(kind, sequence, "objects", format!("{label}: a non-finite position or velocity")));
+        }
+        if !(0.0..=1.0).contains(&confidence) {
+            return Err(field_error(kind, sequence, "objects", format!("{label}: confidence {confidence}")));
+        }
+        if state > track_state::LOST {
+            return Err(field_error(kind, sequence, "objects", format!("{label}: unknown state {state}")));
+        }
+    }
+    Ok(())
+}
+
+impl ClusterSet {
+    /// Whether this message ends the stream.
+    pub fn is_end_of_stream(&self) -> bool {
+        self.flags & END_OF_STREAM != 0
+    }
+
+    /// Checks the version and every object's numbers and state.
+    pub fn validate(&self) -> Result<(), MessageError> {
+        const KIND: &str = "cluster set";
+        check_version(KIND, self.protocol_version)?;
+        if self.is_end_of_stream() {
+            return Ok(());
+        }
+        validate_objects::<3>(
+            KIND,
+            self.sequence,
+            self.objects.iter().map(|o| (o.position, o.velocity, o.confidence, o.state)),
+        )
+    }
+}
+
+/// One object's trajectory sample.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowTrajectoryObject")]
+pub struct TrajectoryObject {
+    /// World position, metres.
+    pub position: [f64; 3],
+    /// World velocity, metres per second.
+    pub velocity: [f64; 3],
+    /// Confidence in [0, 1].
+    pub confidence: f64,
+    /// A [`track_state`] constant.
+    pub state: u32,
+    /// Reserved, 0.
+    pub reserved: u32,
+}
+
+/// What subscribers (recognisers, viewers) receive: every object's estimate at one frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowTrajectorySample")]
+pub struct TrajectorySample {
+    /// [`PROTOCOL_VERSION`].
+    pub protocol_version: u32,
+    /// [`END_OF_STREAM`] or 0.
+    pub flags: u32,
+    /// Ingest sequence of the frame.
+    pub sequence: u64,
+    /// Source frame number.
+    pub frame: u64,
+    /// Stream time, seconds.
+    pub timestamp_s: f64,
+    /// Capture wall-clock time, nanoseconds since the Unix epoch.
+    pub capture_unix_ns: u64,
+    /// Wall-clock time this sample was published, nanoseconds since the Unix epoch.
+    pub published_unix_ns: u64,
+    /// Frame sets lost anywhere upstream since the stream started (live mode drops, frames
+    /// lost while a stage restarted).
+    pub dropped_frames: u64,
+    /// Head, left hand, right hand ([`OBJECT_LABELS`]).
+    pub objects: [TrajectoryObject; 3],
+}
+
+impl TrajectorySample {
+    /// Whether this message ends the stream.
+    pub fn is_end_of_stream(&self) -> bool {
+        self.flags & END_OF_STREAM != 0
+    }
+
+    /// Checks the version and every object's numbers and state.
+    pub fn validate(&self) -> Result<(), MessageError> {
+        const KIND: &str = "trajectory sample";
+        check_version(KIND, self.protocol_version)?;
+        if self.is_end_of_stream() {
+            return Ok(());
+        }
+        validate_objects::<3>(
+            KIND,
+            self.sequence,
+            self.objects.iter().map(|o| (o.position, o.velocity, o.confidence, o.state)),
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame_header(views: u32, w: u32, h: u32) -> FrameHeader {
+        FrameHeader {
+            protocol_version: PROTOCOL_VERSION,
+            pixel_format: PIXEL_FORMAT_RGB8,
+            sequence: 7,
+            view_count: views,
+            width: w,
+            height: h,
+            payload_len: u64::from(views * w * h * 3),
+            ..FrameHeader::default()
+        }
+    }
+
+    #[test]
+    fn a_frame_header_that_matches_its_payload_passes_and_splits_into_views() {
+        let h = frame_header(3, 4, 2);
+        let payload: Vec<u8> = (0..72).collect();
+        h.validate(payload.len()).unwrap();
+        let views = h.views(&payload);
+        assert_eq!(views.len(), 3);
+        assert_eq!(views[1][0], 24);
+    }
+
+    #[test]
+    fn a_frame_header_disagreeing_with_its_payload_names_the_field() {
+        let h = frame_header(3, 4, 2);
+        let e = h.validate(71).unwrap_err();
+        assert!(matches!(e, MessageError::Field { field: "payload_len", sequence: 7, .. }), "{e}");
+        let mut lying = h;
+        lying.view_count = 2;
+        let e = lying.validate(72).unwrap_err();
+        assert!(matches!(e, MessageError::Field { field: "view_count", .. }), "{e}");
+        let mut huge = h;
+        huge.width = u32::MAX;
+        huge.height = u32::MAX;
+        assert!(huge.validate(72).is_err());
+    }
+
+    #[test]
+    fn another_protocol_version_is_refused_with_both_versions_in_the_message() {
+        let mut h = frame_header(1, 1, 1);
+        h.protocol_version = PROTOCOL_VERSION + 1;
+        let e = h.validate(3).unwrap_err();
+        assert_eq!(
+            e,
+            MessageError::Version { message: "frame set", got: PROTOCOL_VERSION + 1, expected: PROTOCOL_VERSION }
+        );
+        assert!(e.to_string().contains(&format!("version {}", PROTOCOL_VERSION + 1)));
+    }
+
+    #[test]
+    fn end_of_stream_carries_no_payload() {
+        let h = FrameHeader { protocol_version: PROTOCOL_VERSION, flags: END_OF_STREAM, ..FrameHeader::default() };
+        h.validate(0).unwrap();
+        let p = ParticleHeader { protocol_version: PROTOCOL_VERSION, flags: END_OF_STREAM, ..Default::default() };
+        p.validate(0).unwrap();
+        assert!(p.validate(1).is_err());
+    }
+
+    #[test]
+    fn particle_headers_check_count_and_numbers() {
+        let p = ParticleHeader {
+            protocol_version: PROTOCOL_VERSION,
+            frame_rate_hz: 30.0,
+            point_count: 5,
+            ..Default::default()
+        };
+        p.validate(5).unwrap();
+        assert!(p.validate(4).is_err());
+        let nan = ParticleHeader { ray_spread_var: f64::NAN, ..p };
+        assert!(matches!(nan.validate(5), Err(MessageError::Field { field: "ray_spread_var", .. })));
+    }
+
+    #[test]
+    fn trajectory_samples_reject_non_finite_objects_and_unknown_states() {
+        let mut s = TrajectorySample { protocol_version: PROTOCOL_VERSION, ..Default::default() };
+        s.validate().unwrap();
+        s.objects[2].position[1] = f64::INFINITY;
+        assert!(s.validate().unwrap_err().to_string().contains("right_hand"));
+        s.objects[2].position[1] = 0.0;
+        s.objects[0].state = 9;
+        assert!(s.validate().is_err());
+    }
+
+    #[test]
+    fn fixed_size_messages_have_stable_sizes() {
+        // Subscribers in other languages mirror these layouts.
+        assert_eq!(std::mem::size_of::<ScenePoint>(), 32);
+        assert_eq!(std::mem::size_of::<TrajectoryObject>(), 64);
+        assert_eq!(std::mem::size_of::<TrajectorySample>(), 56 + 3 * 64);
+        assert_eq!(std::mem::size_of::<LabelledCluster>(), 72);
+    }
+}

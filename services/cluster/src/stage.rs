@@ -1,0 +1,185 @@
+//! One frame's particle set in, three labelled objects out: EM in 6D, the move from the
+//! visible surface to each object's middle, and labelling. The offline tracker and the
+//! cluster service both run this, so they agree to the bit.
+
+use std::time::Instant;
+
+use handflow_protocol::messages::ScenePoint;
+use handflow_protocol::Camera;
+use nalgebra::{Point3, Vector3};
+
+use crate::em::{extremity_means, fit_mixture, Component, EmConfig};
+use crate::tracks::{State, Tracker, TrackerConfig};
+use crate::WeightedPoint;
+
+/// The largest half-thickness the centre correction assumes for a hand, metres: an adult
+/// palm is 2-4 cm thick, a loose fist a little more.
+pub const HAND_HALF_THICKNESS_M: f64 = 0.02;
+
+/// One object after a frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ObjectEstimate {
+    /// World position of the object's middle, metres.
+    pub position: Vector3<f64>,
+    /// World velocity, metres per second.
+    pub velocity: Vector3<f64>,
+    /// Confidence in [0, 1].
+    pub confidence: f64,
+    /// Tracking state.
+    pub state: State,
+    /// Share of the frame's particle weight in the cluster assigned to the object (0 when
+    /// none was).
+    pub mass: f64,
+}
+
+/// Clustering and labelling of a stream of particle sets from one reference camera.
+pub struct ClusterStage {
+    tracker: Tracker,
+    em: EmConfig,
+    points: Vec<WeightedPoint>,
+    eye: Point3<f64>,
+    up: Vector3<f64>,
+    signer_left: Vector3<f64>,
+    centre_correction: bool,
+    seconds: f64,
+    frames: u64,
+}
+
+impl ClusterStage {
+    /// A stage for particles on the rays of `reference` (the camera the signer faces: image
+    /// up is the world's up, image right the signer's left). `centre_correction` moves each
+    /// cluster's centre from the visible surface to the object's middle
+    /// ([`surface_to_centre`]).
+    pub fn new(reference: &Camera, centre_correction: bool) -> Self {
+        let axes = reference.rotation.matrix();
+        let up = -axes.row(1).transpose();
+        let signer_left = axes.row(0).transpose();
+        Self {
+            tracker: Tracker::new(TrackerConfig::default(), up, signer_left),
+            em: EmConfig::default(),
+            points: Vec::new(),
+            eye: reference.centre(),
+            up,
+            signer_left,
+            centre_correction,
+            seconds: 0.0,
+            frames: 0,
+        }
+    }
+
+    /// The objects (head, left hand, right hand) after the particle set of the frame at
+    /// stream time `t` seconds. `fps` converts the points' velocities from metres per frame
+    /// to metres per second; `ray_spread_var` is the filter's own variance along a ray.
+    pub fn update(&mut self, t: f64, fps: f64, ray_spread_var: f64, points: &[ScenePoint]) -> [ObjectEstimate; 3] {
+        let started = Instant::now();
+        self.points.clear();
+        self.points.extend(points.iter().map(|p| WeightedPoint {
+            position: Vector3::new(f64::from(p.position[0]), f64::from(p.position[1]), f64::from(p.position[2])),
+            velocity: Vector3::new(f64::from(p.velocity[0]), f64::from(p.velocity[1]), f64::from(p.velocity[2])) * fps,
+            weight: f64::from(p.weight),
+        }));
+        let initial = match self.tracker.predictions(t) {
+            Some(p) => Some(p),
+            None => extremity_means(&self.points, self.up, self.signer_left),
+        };
+        let mut fit = initial.and_then(|init| fit_mixture(&self.points, &init, &self.em));
+        let raw = fit.clone();
+        if let (Some(fit), true) = (fit.as_mut(), self.centre_correction) {
+            for c in fit.components.iter_mut() {
+                surface_to_centre(c, &self.eye, self.em.min_std, ray_spread_var, HAND_HALF_THICKNESS_M);
+            }
+        }
+        let mut tracks = self.tracker.update(t, fit.as_ref());
+        // The head's skin is its face, a shallow cap of a nearly round object: its depth spread
+        // says little about its size, so its centre comes from the spread across the view.
+        if let (Some(fit), Some(raw), true) = (&fit, &raw, self.centre_correction) {
+            if let (State::Tracked, Some(m)) = (tracks[0].state, self.tracker.assigned()[0]) {
+                let mut head = raw.components[m.cluster];
+                surface_to_centre(&mut head, &self.eye, self.em.min_std, f64::INFINITY, f64::INFINITY);
+                // By the share of the measurement the tracker took.
+                tracks[0].position += (head.position - fit.components[m.cluster].position) * m.pull;
+                self.tracker.set_position(0, tracks[0].position);
+            }
+        }
+        let total: f64 = self.points.iter().map(|p| p.weight).sum();
+        let assigned = self.tracker.assigned();
+        let estimates = std::array::from_fn(|k| {
+            let track = tracks[k];
+            let mass = match (assigned[k], &fit) {
+                (Some(m), Some(fit)) if total > 0.0 => fit.components[m.cluster].mass / total,
+                _ => 0.0,
+            };
+            ObjectEstimate {
+                position: track.position,
+                velocity: track.velocity,
+                confidence: track.confidence,
+                state: track.state,
+                mass,
+            }
+        });
+        self.seconds += started.elapsed().as_secs_f64();
+        self.frames += 1;
+        estimates
+    }
+
+    /// Mean time per [`ClusterStage::update`], seconds.
+    pub fn seconds_per_frame(&self) -> f64 {
+        self.seconds / self.frames.max(1) as f64
+    }
+
+    /// Tracks re-initialised on a cluster far from their prediction so far.
+    pub fn reinitialisations(&self) -> u64 {
+        self.tracker.reinitialisations()
+    }
+}
+
+/// Moves a cluster's centre from the surface the reference camera sees to the object's
+/// middle. The points of a roughly convex object (a head, a hand) seen from one side lie on
+/// its front: for a sphere of radius r the visible points' centroid is 2r/3 in front of the
+/// centre. The radius along the line of sight is estimated twice, from the spread across
+/// the view (r/2 for a sphere) and from the spread in depth (0.236 r), and the smaller is
+/// used: a flat hand facing the camera is wide but thin, and depth noise only ever widens
+/// the second estimate. `min_std` is the floor EM added to every variance and
+/// `ray_spread_var` the variance a ray's particles have along it (the filter's own
+/// uncertainty, not the object's depth): both are taken out of the depth spread first.
+/// `max_depth_radius` bounds the result by what the object can be: depth noise the
+/// filter's spread does not account for still widens the depth estimate, and a hand's
+/// spread across the view is its width, not its thickness.
+pub fn surface_to_centre(
+    c: &mut Component,
+    eye: &Point3<f64>,
+    min_std: f64,
+    ray_spread_var: f64,
+    max_depth_radius: f64,
+) {
+    let Some(sight) = (c.position - eye.coords).try_normalize(1e-9) else { return };
+    let p = c.covariance.fixed_view::<3, 3>(0, 0);
+    let floor = min_std * min_std;
+    let along = (sight.transpose() * p * sight)[(0, 0)];
+    let across = (p.trace() - along) / 2.0;
+    let r_across = 2.0 * (across - floor).max(0.0).sqrt();
+    // An infinite `ray_spread_var` leaves only the estimate across the view.
+    let r_along = if ray_spread_var.is_finite() {
+        (along - floor - ray_spread_var).max(0.0).sqrt() / 0.236
+    } else {
+        f64::INFINITY
+    };
+    c.position += sight * (2.0 / 3.0) * r_across.min(r_along).min(max_depth_radius);
+}
+
+/// The objects on the wire, in [`handflow_protocol::messages::OBJECT_LABELS`] order.
+pub fn labelled_clusters(estimates: &[ObjectEstimate; 3]) -> [handflow_protocol::messages::LabelledCluster; 3] {
+    use handflow_protocol::messages::{track_state, LabelledCluster};
+    estimates.map(|e| LabelledCluster {
+        position: e.position.into(),
+        velocity: e.velocity.into(),
+        confidence: e.confidence,
+        mass: e.mass,
+        state: match e.state {
+            State::Tracked => track_state::TRACKED,
+            State::Predicted => track_state::PREDICTED,
+            State::Lost => track_state::LOST,
+        },
+        reserved: 0,
+    })
+}
