@@ -26,6 +26,22 @@ use crate::messages::{ClusterSet, FrameHeader, ParticleHeader, RigHeader, SceneP
 
 /// The transport: processes on one machine.
 pub type Ipc = ipc::Service;
+/// A node of the transport.
+pub type IpcNode = Node<Ipc>;
+
+/// Logs of a stage process to standard error (the launcher passes them on), at the level
+/// `RUST_LOG` gives (default `info`); each line names its stage by its crate
+/// (`handflow_flow: ...`). Colours only on a terminal.
+pub fn init_logging() {
+    use std::io::IsTerminal;
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_ansi(std::io::stderr().is_terminal())
+        .with_writer(std::io::stderr)
+        .try_init();
+}
 
 /// How the stages deliver messages.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -451,6 +467,126 @@ pub fn trajectories_input(
         Mode::Live => 8,
     };
     input(node, name, &service, buffer)
+}
+
+/// What a sample handler wants next.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Next {
+    /// Keep serving.
+    Continue,
+    /// Return from [`serve`].
+    Stop,
+}
+
+/// An input whose samples can be received one by one (fixed-size and slice payloads
+/// receive differently in iceoryx2).
+pub trait Receive {
+    /// A received sample.
+    type Sample;
+    /// The next waiting sample, if any.
+    fn receive_one(&self) -> Result<Option<Self::Sample>, IpcError>;
+    /// The listener woken by the publisher.
+    fn wake_listener(&self) -> &Listener<Ipc>;
+    /// The service's name.
+    fn service_name(&self) -> &str;
+}
+
+impl<T: fmt::Debug + ZeroCopySend + 'static, H: fmt::Debug + ZeroCopySend + 'static> Receive for Input<T, H> {
+    type Sample = iceoryx2::sample::Sample<Ipc, T, H>;
+
+    fn receive_one(&self) -> Result<Option<Self::Sample>, IpcError> {
+        self.subscriber.receive().map_err(|e| IpcError::new(&self.name, format!("receive: {e:?}")))
+    }
+
+    fn wake_listener(&self) -> &Listener<Ipc> {
+        &self.listener
+    }
+
+    fn service_name(&self) -> &str {
+        &self.name
+    }
+}
+
+impl<T: fmt::Debug + ZeroCopySend + 'static, H: fmt::Debug + ZeroCopySend + 'static> Receive for Input<[T], H> {
+    type Sample = iceoryx2::sample::Sample<Ipc, [T], H>;
+
+    fn receive_one(&self) -> Result<Option<Self::Sample>, IpcError> {
+        self.subscriber.receive().map_err(|e| IpcError::new(&self.name, format!("receive: {e:?}")))
+    }
+
+    fn wake_listener(&self) -> &Listener<Ipc> {
+        &self.listener
+    }
+
+    fn service_name(&self) -> &str {
+        &self.name
+    }
+}
+
+/// Serves `input`: a WaitSet sleeps until the publisher's notification (or `idle` at the
+/// latest, a safety net for a lost wake-up), then every waiting sample goes to `on_sample`,
+/// oldest first. Returns when `on_sample` says [`Next::Stop`] or fails, or on SIGINT/SIGTERM.
+pub fn serve<I: Receive, E: From<IpcError>>(
+    input: &I,
+    idle: Duration,
+    mut on_sample: impl FnMut(I::Sample) -> Result<Next, E>,
+) -> Result<(), E> {
+    let name = input.service_name().to_owned();
+    let waitset = WaitSetBuilder::new()
+        .create::<Ipc>()
+        .map_err(|e| IpcError::new(&name, format!("creating the WaitSet: {e:?}")))?;
+    let _guard = waitset
+        .attach_deadline(input.wake_listener(), idle)
+        .map_err(|e| IpcError::new(&name, format!("attaching to the WaitSet: {e:?}")))?;
+    let mut result = Ok(());
+    let on_event = |_: WaitSetAttachmentId<Ipc>| {
+        let _ = input.wake_listener().try_wait(|_| {});
+        loop {
+            match input.receive_one() {
+                Ok(Some(sample)) => match on_sample(sample) {
+                    Ok(Next::Continue) => {}
+                    Ok(Next::Stop) => return CallbackProgression::Stop,
+                    Err(e) => {
+                        result = Err(e);
+                        return CallbackProgression::Stop;
+                    }
+                },
+                Ok(None) => return CallbackProgression::Continue,
+                Err(e) => {
+                    result = Err(e.into());
+                    return CallbackProgression::Stop;
+                }
+            }
+        }
+    };
+    waitset.wait_and_process(on_event).map_err(|e| IpcError::new(&name, format!("WaitSet: {e:?}")))?;
+    result
+}
+
+/// Waits for the rig calibration (sleeping in steps of 10 ms; it arrives from the history
+/// as soon as ingest has published it) and checks it. `None` on SIGINT/SIGTERM.
+pub fn wait_for_rig(node: &IpcNode, names: &ServiceNames) -> Result<Option<(RigHeader, crate::Rig)>, IpcError> {
+    let input = rig_input(node, names)?;
+    let name = names.rig();
+    let mut announced = false;
+    loop {
+        let sample = input.subscriber.receive().map_err(|e| IpcError::new(&name, format!("receive: {e:?}")))?;
+        if let Some(sample) = sample {
+            let header = *sample.user_header();
+            header.validate(sample.payload().len()).map_err(|e| IpcError::new(&name, e))?;
+            let text =
+                std::str::from_utf8(sample.payload()).map_err(|e| IpcError::new(&name, format!("rig text: {e}")))?;
+            let rig = crate::Rig::from_toml_str(text).map_err(|e| IpcError::new(&name, format!("rig: {e}")))?;
+            return Ok(Some((header, rig)));
+        }
+        if !announced {
+            tracing::info!("waiting for the rig calibration on `{name}`");
+            announced = true;
+        }
+        if node.wait(Duration::from_millis(10)).is_err() {
+            return Ok(None);
+        }
+    }
 }
 
 /// Nanoseconds since the Unix epoch (0 if the clock is before it).

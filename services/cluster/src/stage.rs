@@ -42,6 +42,7 @@ pub struct ClusterStage {
     signer_left: Vector3<f64>,
     centre_correction: bool,
     seconds: f64,
+    last_seconds: f64,
     frames: u64,
 }
 
@@ -63,6 +64,7 @@ impl ClusterStage {
             signer_left,
             centre_correction,
             seconds: 0.0,
+            last_seconds: 0.0,
             frames: 0,
         }
     }
@@ -117,7 +119,8 @@ impl ClusterStage {
                 mass,
             }
         });
-        self.seconds += started.elapsed().as_secs_f64();
+        self.last_seconds = started.elapsed().as_secs_f64();
+        self.seconds += self.last_seconds;
         self.frames += 1;
         estimates
     }
@@ -125,6 +128,11 @@ impl ClusterStage {
     /// Mean time per [`ClusterStage::update`], seconds.
     pub fn seconds_per_frame(&self) -> f64 {
         self.seconds / self.frames.max(1) as f64
+    }
+
+    /// Time of the last [`ClusterStage::update`], seconds.
+    pub fn last_seconds(&self) -> f64 {
+        self.last_seconds
     }
 
     /// Tracks re-initialised on a cluster far from their prediction so far.

@@ -1,0 +1,200 @@
+//! `handflow-flow`: the scene-flow stage. Frame sets in, one particle set per frame out, one
+//! frame late (the forwards/backwards likelihood needs t+1). The engine's ring of three
+//! frames' pyramids is the one-frame delay; a frame sample is released as soon as its
+//! pyramids are built, so ingest can reuse the shared memory.
+
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FlowStream, StreamError};
+use handflow_flow::{SceneFlowEngine, Variant};
+use handflow_protocol::ipc::{self, Mode, Next, Output, ServiceNames};
+use handflow_protocol::messages::{ParticleHeader, ScenePoint, END_OF_STREAM, PROTOCOL_VERSION};
+
+#[derive(Parser, Debug)]
+#[command(name = "handflow-flow", about = "Scene flow by Scene Particles: frame sets in, particle sets out")]
+struct Args {
+    /// Delivery mode: `replay` (nothing dropped) or `live` (latest wins).
+    #[arg(long, default_value = "replay")]
+    mode: Mode,
+    /// Engine variant: `handflow` (default) or `paper`.
+    #[arg(long, default_value = "handflow")]
+    variant: String,
+    /// Prefix of the service names.
+    #[arg(long, default_value = ipc::DEFAULT_PREFIX)]
+    services: String,
+}
+
+/// What the stage remembers of a frame until its estimate is out.
+#[derive(Clone, Copy, Debug)]
+struct FrameMeta {
+    sequence: u64,
+    frame: u64,
+    timestamp_s: f64,
+    capture_unix_ns: u64,
+}
+
+fn main() {
+    ipc::init_logging();
+    if let Err(e) = run(Args::parse()) {
+        tracing::error!("{e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(args: Args) -> Result<()> {
+    let variant: Variant = args.variant.parse().map_err(anyhow::Error::msg)?;
+    let names = ServiceNames::new(&args.services);
+    let node = ipc::create_node("handflow-flow")?;
+    // Dead stages of an earlier run would keep a lossless publisher waiting.
+    let cleaned = ipc::cleanup_dead_nodes(&node);
+    if cleaned > 0 {
+        tracing::info!("cleaned up {cleaned} dead node(s)");
+    }
+    let Some((rig_header, rig)) = ipc::wait_for_rig(&node, &names)? else { return Ok(()) };
+    let fps = rig_header.frame_rate_hz;
+    let reference = rig.most_frontal_camera();
+    let config = stream_engine_config(variant, None, fps);
+    let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
+    let (width, height, views) = (rig.cameras[0].width, rig.cameras[0].height, rig.cameras.len() as u32);
+    let frames = ipc::frames_input(&node, &names, args.mode)?;
+    let particles = ipc::particles_output(&node, &names, args.mode)?;
+    tracing::info!(
+        "ready: {views} cameras, reference `{}`, {fps:.1} frames/s, {variant:?} engine, {} mode",
+        rig.cameras[reference].name,
+        args.mode
+    );
+    let mut stream: FlowStream<FrameMeta> = FlowStream::new(engine);
+    let mut connected = false;
+    let mut last_sequence: Option<u64> = None;
+    let mut dropped = 0u64;
+    let mut failure: Option<anyhow::Error> = None;
+    ipc::serve(&frames, Duration::from_millis(250), |sample| -> Result<Next> {
+        let header = *sample.user_header();
+        if let Err(e) = header.validate(sample.payload().len()) {
+            tracing::error!("skipping a malformed frame set: {e}");
+            return Ok(Next::Continue);
+        }
+        if !header.is_end_of_stream()
+            && (header.view_count != views || header.width != width || header.height != height)
+        {
+            tracing::error!(
+                "skipping frame set {}: {} views of {}x{}, the rig has {views} of {width}x{height}",
+                header.sequence,
+                header.view_count,
+                header.width,
+                header.height
+            );
+            return Ok(Next::Continue);
+        }
+        if !connected {
+            connect(&node, &particles, args.mode);
+            connected = true;
+        }
+        let mut publish = |meta: FrameMeta, engine: &SceneFlowEngine| -> Result<(), StreamError> {
+            send_particles(&particles, &meta, engine, fps, rig_header.rig_version, reference as u32).map_err(|e| {
+                failure = Some(e);
+                StreamError::Stopped
+            })
+        };
+        if header.is_end_of_stream() {
+            let finished = stream.finish(&mut publish);
+            if let Some(e) = failure.take() {
+                return Err(e);
+            }
+            finished.context("end of stream")?;
+            send_end_of_stream(&particles, header.sequence)?;
+            tracing::info!("end of stream after frame set {}; {dropped} frame set(s) dropped", header.sequence);
+            last_sequence = None;
+            return Ok(Next::Continue);
+        }
+        if let Some(last) = last_sequence {
+            if header.sequence > last + 1 {
+                dropped += header.sequence - last - 1;
+                tracing::warn!(
+                    "frame sets {}..{} never arrived ({dropped} dropped so far)",
+                    last + 1,
+                    header.sequence - 1
+                );
+            }
+        }
+        last_sequence = Some(header.sequence);
+        let meta = FrameMeta {
+            sequence: header.sequence,
+            frame: header.frame,
+            timestamp_s: header.timestamp_s,
+            capture_unix_ns: header.capture_unix_ns,
+        };
+        let pushed = stream.push(meta, sample.payload(), &mut publish);
+        drop(sample);
+        if let Some(e) = failure.take() {
+            return Err(e);
+        }
+        pushed.with_context(|| format!("frame set {}", header.sequence))?;
+        Ok(Next::Continue)
+    })?;
+    tracing::info!("stopped");
+    Ok(())
+}
+
+/// Replay loses nothing: wait until the cluster stage listens before sending anything.
+fn connect<
+    P: ?Sized + std::fmt::Debug + iceoryx2::prelude::IceoryxSend,
+    H: std::fmt::Debug + iceoryx2::prelude::ZeroCopySend,
+>(
+    node: &ipc::IpcNode,
+    out: &Output<P, H>,
+    mode: Mode,
+) {
+    if mode == Mode::Replay && out.subscribers() == 0 {
+        tracing::info!("waiting for a subscriber on `{}`", out.name());
+    }
+    let needed = usize::from(mode == Mode::Replay);
+    out.wait_for_subscribers(node, needed, Duration::MAX);
+}
+
+/// Writes the estimate's particles straight into a loaned sample and sends it.
+fn send_particles(
+    out: &Output<[ScenePoint], ParticleHeader>,
+    meta: &FrameMeta,
+    engine: &SceneFlowEngine,
+    fps: f64,
+    rig_version: u32,
+    reference: u32,
+) -> Result<()> {
+    let count = scene_point_count(engine);
+    let sample = out.publisher.loan_slice_uninit(count).with_context(|| format!("loaning {count} points"))?;
+    let mut points = scene_points(engine);
+    let mut sample = sample.write_from_fn(|_| points.next().unwrap_or_default());
+    *sample.user_header_mut() = ParticleHeader {
+        protocol_version: PROTOCOL_VERSION,
+        flags: 0,
+        sequence: meta.sequence,
+        frame: meta.frame,
+        timestamp_s: meta.timestamp_s,
+        capture_unix_ns: meta.capture_unix_ns,
+        frame_rate_hz: fps,
+        ray_spread_var: handflow_flow::stream::ray_spread_variance(engine),
+        point_count: count as u64,
+        flow_seconds: engine.stats().seconds,
+        rig_version,
+        reference_camera: reference,
+    };
+    sample.send().context("sending particles")?;
+    out.notify()?;
+    Ok(())
+}
+
+fn send_end_of_stream(out: &Output<[ScenePoint], ParticleHeader>, sequence: u64) -> Result<()> {
+    let mut sample = out.publisher.loan_slice(0).context("loaning the end-of-stream sample")?;
+    *sample.user_header_mut() = ParticleHeader {
+        protocol_version: PROTOCOL_VERSION,
+        flags: END_OF_STREAM,
+        sequence,
+        ..ParticleHeader::default()
+    };
+    sample.send().context("sending end of stream")?;
+    out.notify()?;
+    Ok(())
+}

@@ -1,0 +1,215 @@
+//! `handflow-ingest`: fake cameras. Publishes the rig calibration (history 1) and one frame
+//! set per instant, decoded (or rendered) straight into the loaned shared-memory sample.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use handflow_ingest::synthetic::{Renderer, SceneSpec};
+use handflow_ingest::Recording;
+use handflow_protocol::ipc::{self, Mode, ServiceNames};
+use handflow_protocol::messages::{FrameHeader, RigHeader, END_OF_STREAM, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION};
+use handflow_protocol::Rig;
+
+#[derive(Parser, Debug)]
+#[command(name = "handflow-ingest", about = "Fake cameras: replay a recording or render a synthetic scene")]
+struct Args {
+    /// Recording folder to replay.
+    #[arg(long, conflicts_with = "preset")]
+    recording: Option<PathBuf>,
+    /// Built-in synthetic scene to render live instead (signer-3cam, hands-cross, ...).
+    #[arg(long)]
+    preset: Option<String>,
+    /// Delivery mode: `replay` (nothing dropped) or `live` (latest wins).
+    #[arg(long, default_value = "replay")]
+    mode: Mode,
+    /// Pace: `recorded` (the source's frame rate) or `max` (as fast as the pipeline takes it).
+    /// Default: `max` in replay mode, `recorded` in live mode.
+    #[arg(long)]
+    pace: Option<Pace>,
+    /// Start again at the first frame after the last, forever.
+    #[arg(long = "loop")]
+    looped: bool,
+    /// Publish only the first N frames.
+    #[arg(long)]
+    frames: Option<u64>,
+    /// Prefix of the service names.
+    #[arg(long, default_value = ipc::DEFAULT_PREFIX)]
+    services: String,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum Pace {
+    Recorded,
+    Max,
+}
+
+/// Where frame sets come from.
+enum Source {
+    Recording(Recording),
+    Synthetic { renderer: Box<Renderer>, masks: Vec<u8> },
+}
+
+impl Source {
+    fn rig(&self) -> &Rig {
+        match self {
+            Source::Recording(r) => r.rig(),
+            Source::Synthetic { renderer, .. } => renderer.rig(),
+        }
+    }
+
+    fn frame_rate(&self) -> f64 {
+        match self {
+            Source::Recording(r) => r.frame_rate(),
+            Source::Synthetic { renderer, .. } => renderer.spec().fps,
+        }
+    }
+
+    fn len(&self) -> u64 {
+        match self {
+            Source::Recording(r) => r.len() as u64,
+            Source::Synthetic { renderer, .. } => u64::from(renderer.spec().frames),
+        }
+    }
+
+    /// Fills `dst` with replay position `sequence`; returns its frame number and stream time.
+    fn fill(&mut self, sequence: u64, looped: bool, dst: &mut [u8]) -> Result<(u64, f64)> {
+        match self {
+            Source::Recording(r) => {
+                let info = r.read_frame_into(sequence, looped, dst)?;
+                Ok((info.frame, info.timestamp))
+            }
+            Source::Synthetic { renderer, masks } => {
+                let n = u64::from(renderer.spec().frames.max(1));
+                let frame = (sequence % n) as u32;
+                renderer.render_into(frame, dst, masks);
+                // Time keeps increasing across loops.
+                Ok((u64::from(frame), sequence as f64 / renderer.spec().fps))
+            }
+        }
+    }
+}
+
+fn main() {
+    ipc::init_logging();
+    if let Err(e) = run(Args::parse()) {
+        tracing::error!("{e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(args: Args) -> Result<()> {
+    let mut source = match (&args.recording, &args.preset) {
+        (Some(dir), _) => Source::Recording(Recording::open(dir)?),
+        (None, Some(name)) => {
+            let spec = SceneSpec::preset(name).with_context(|| format!("unknown preset `{name}`"))?;
+            let renderer = Renderer::new(&spec).map_err(anyhow::Error::msg)?;
+            let masks = vec![0u8; renderer.view_len() / 3 * renderer.rig().cameras.len()];
+            Source::Synthetic { renderer: Box::new(renderer), masks }
+        }
+        (None, None) => bail!("give a recording (--recording DIR) or a synthetic scene (--preset NAME)"),
+    };
+    let cameras = &source.rig().cameras;
+    let (width, height) = (cameras[0].width, cameras[0].height);
+    if cameras.iter().any(|c| c.width != width || c.height != height) {
+        bail!("every camera of a frame set must have the same size; the rig mixes sizes");
+    }
+    let view_count = cameras.len() as u32;
+    let frame_set_len = cameras.iter().map(|c| c.width as usize * c.height as usize * 3).sum::<usize>();
+    let pace = args.pace.unwrap_or(match args.mode {
+        Mode::Replay => Pace::Max,
+        Mode::Live => Pace::Recorded,
+    });
+    let names = ServiceNames::new(&args.services);
+    let node = ipc::create_node("handflow-ingest")?;
+    // Kept alive: the rig's history lives as long as its publisher.
+    let _rig = publish_rig(&node, &names, source.rig(), source.frame_rate())?;
+    let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
+    // Replay loses nothing: wait for the flow stage before the first frame.
+    if args.mode == Mode::Replay {
+        tracing::info!("waiting for a subscriber on `{}`", frames.name());
+        if !frames.wait_for_subscribers(&node, 1, Duration::MAX) {
+            return Ok(());
+        }
+    }
+    let total = match (args.looped, args.frames) {
+        (true, n) => n.unwrap_or(u64::MAX),
+        (false, n) => n.unwrap_or(source.len()).min(source.len()),
+    };
+    tracing::info!(
+        "publishing {} frame sets of {view_count} x {width}x{height} on `{}` ({} mode, {} pace)",
+        if total == u64::MAX { "endless".to_string() } else { total.to_string() },
+        frames.name(),
+        args.mode,
+        if pace == Pace::Max { "maximum" } else { "recorded" },
+    );
+    let interval = Duration::from_secs_f64(1.0 / source.frame_rate());
+    let started = Instant::now();
+    for sequence in 0..total {
+        if pace == Pace::Recorded {
+            let due = interval.saturating_mul(sequence.min(u64::from(u32::MAX)) as u32);
+            if let Some(wait) = due.checked_sub(started.elapsed()) {
+                if node.wait(wait).is_err() {
+                    return Ok(());
+                }
+            }
+        }
+        // Zero-initialised, so the decoder writes into plain bytes; the image is decoded
+        // into the shared memory itself.
+        let mut sample = frames.publisher.loan_slice(frame_set_len).context("loaning a frame sample")?;
+        let (frame, timestamp_s) = source
+            .fill(sequence, args.looped, sample.payload_mut())
+            .with_context(|| format!("frame set {sequence}"))?;
+        *sample.user_header_mut() = FrameHeader {
+            protocol_version: PROTOCOL_VERSION,
+            pixel_format: PIXEL_FORMAT_RGB8,
+            sequence,
+            frame,
+            timestamp_s,
+            capture_unix_ns: ipc::unix_now_ns(),
+            rig_version: 1,
+            view_count,
+            width,
+            height,
+            flags: 0,
+            reserved: 0,
+            payload_len: frame_set_len as u64,
+        };
+        sample.send().with_context(|| format!("sending frame set {sequence}"))?;
+        frames.notify()?;
+        if sequence % 30 == 0 {
+            tracing::debug!("frame set {sequence} sent");
+        }
+    }
+    let mut end = frames.publisher.loan_slice(0).context("loaning the end-of-stream sample")?;
+    *end.user_header_mut() = FrameHeader {
+        protocol_version: PROTOCOL_VERSION,
+        sequence: total,
+        flags: END_OF_STREAM,
+        ..FrameHeader::default()
+    };
+    end.send().context("sending end of stream")?;
+    frames.notify()?;
+    tracing::info!("end of stream after {total} frame sets; waiting to be stopped");
+    // Stay until stopped: the samples in flight live in this process's memory.
+    while node.wait(Duration::from_millis(200)).is_ok() {}
+    Ok(())
+}
+
+fn publish_rig(
+    node: &ipc::IpcNode,
+    names: &ServiceNames,
+    rig: &Rig,
+    frame_rate_hz: f64,
+) -> Result<ipc::Output<[u8], RigHeader>> {
+    let out = ipc::rig_output(node, names)?;
+    let text = rig.to_toml_string();
+    let mut sample = out.publisher.loan_slice(text.len()).context("loaning the rig sample")?;
+    sample.payload_mut().copy_from_slice(text.as_bytes());
+    *sample.user_header_mut() =
+        RigHeader { protocol_version: PROTOCOL_VERSION, rig_version: 1, frame_rate_hz, text_len: text.len() as u64 };
+    sample.send().context("sending the rig")?;
+    out.notify()?;
+    Ok(out)
+}

@@ -1,0 +1,129 @@
+//! `handflow-publish`: the trajectory-publisher stage. Labelled clusters in; trajectory
+//! samples out on shared memory for any number of subscribers, and as a JSON Lines file.
+
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use handflow_protocol::ipc::{self, Mode, Next, ServiceNames};
+use handflow_publish::{trajectory_sample, JsonLinesSink, SequenceGaps, TrajectoryRecord};
+
+#[derive(Parser, Debug)]
+#[command(name = "handflow-publish", about = "Trajectory samples for subscribers and a JSON Lines file")]
+struct Args {
+    /// Delivery mode: `replay` (nothing dropped) or `live` (latest wins).
+    #[arg(long, default_value = "replay")]
+    mode: Mode,
+    /// JSON Lines file to write the trajectories to (one object per frame).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Exit (status 0) after the end of the stream has been published.
+    #[arg(long)]
+    exit_at_end: bool,
+    /// Prefix of the service names.
+    #[arg(long, default_value = ipc::DEFAULT_PREFIX)]
+    services: String,
+}
+
+fn main() {
+    ipc::init_logging();
+    if let Err(e) = run(Args::parse()) {
+        tracing::error!("{e:#}");
+        std::process::exit(1);
+    }
+}
+
+/// Glass-to-trajectory latencies, for the end-of-stream report.
+#[derive(Default)]
+struct Latencies(Vec<f64>);
+
+impl Latencies {
+    fn percentile(&self, p: f64) -> f64 {
+        let mut v = self.0.clone();
+        v.sort_by(f64::total_cmp);
+        v.get(((v.len() as f64 - 1.0) * p).round().max(0.0) as usize).copied().unwrap_or(0.0)
+    }
+}
+
+fn run(args: Args) -> Result<()> {
+    let names = ServiceNames::new(&args.services);
+    let node = ipc::create_node("handflow-publish")?;
+    let cleaned = ipc::cleanup_dead_nodes(&node);
+    if cleaned > 0 {
+        tracing::info!("cleaned up {cleaned} dead node(s)");
+    }
+    let clusters = ipc::clusters_input(&node, &names, args.mode)?;
+    let trajectories = ipc::trajectories_output(&node, &names, args.mode)?;
+    let mut sink = match &args.out {
+        Some(path) => {
+            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).with_context(|| format!("creating `{}`", dir.display()))?;
+            }
+            let file = File::create(path).with_context(|| format!("creating `{}`", path.display()))?;
+            Some(JsonLinesSink::new(BufWriter::new(file)))
+        }
+        None => None,
+    };
+    tracing::info!(
+        "ready: trajectories on `{}`{}, {} mode",
+        trajectories.name(),
+        args.out.as_ref().map(|p| format!(" and in `{}`", p.display())).unwrap_or_default(),
+        args.mode
+    );
+    let mut gaps = SequenceGaps::default();
+    let mut published = 0u64;
+    let mut latencies = Latencies::default();
+    ipc::serve(&clusters, Duration::from_millis(250), |sample| -> Result<Next> {
+        let set = *sample.payload();
+        drop(sample);
+        if let Err(e) = set.validate() {
+            tracing::error!("skipping malformed clusters: {e}");
+            return Ok(Next::Continue);
+        }
+        let end = set.is_end_of_stream();
+        if !end {
+            let lost = gaps.arrive(set.sequence);
+            if !lost.is_empty() {
+                tracing::warn!(
+                    "frames lost upstream: sequence {}..={} ({} in all so far)",
+                    lost.start,
+                    lost.end - 1,
+                    gaps.lost()
+                );
+            }
+        }
+        let now = ipc::unix_now_ns();
+        let out = trajectory_sample(&set, gaps.lost(), now);
+        trajectories.publisher.send_copy(out).context("sending the trajectory sample")?;
+        trajectories.notify()?;
+        if end {
+            tracing::info!(
+                "end of stream: {published} trajectory samples, {} frames lost upstream, glass-to-trajectory p50 {:.1} ms, p99 {:.1} ms",
+                gaps.lost(),
+                latencies.percentile(0.5) * 1e3,
+                latencies.percentile(0.99) * 1e3,
+            );
+            if args.exit_at_end {
+                return Ok(Next::Stop);
+            }
+            gaps = SequenceGaps::default();
+            published = 0;
+            latencies = Latencies::default();
+            return Ok(Next::Continue);
+        }
+        published += 1;
+        if set.capture_unix_ns > 0 {
+            latencies.0.push(now.saturating_sub(set.capture_unix_ns) as f64 * 1e-9);
+        }
+        if let Some(sink) = sink.as_mut() {
+            sink.write(&TrajectoryRecord::from_sample(&out)).context("writing the trajectory file")?;
+        }
+        Ok(Next::Continue)
+    })?;
+    // Keep the last samples readable until subscribers have had them.
+    std::thread::sleep(Duration::from_millis(100));
+    Ok(())
+}
