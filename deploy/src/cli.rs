@@ -20,8 +20,8 @@ use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec, PRESETS};
 pub const DEFAULT_SCENE: &str = "../shared/data/middlebury/teddy";
 
 /// handflow: 3D trajectories of head and hands from calibrated cameras, by clustered scene
-/// flow. Without a command, runs the demo: the scene-flow evaluation on the built-in
-/// Middlebury Teddy scene.
+/// flow. Without a command, runs the demo: the streaming pipeline on the built-in
+/// `signer-3cam` scene (`handflow run`).
 #[derive(Parser, Debug)]
 #[command(name = "handflow", version)]
 pub struct Cli {
@@ -43,6 +43,14 @@ enum Command {
     Track(TrackArgs),
     /// Draw the last positions of each trajectory on every camera's images.
     Overlay(OverlayArgs),
+    /// Run the streaming pipeline: ingest, flow, cluster and publish processes over shared
+    /// memory. Without arguments, the demo on the built-in `signer-3cam` scene.
+    Run(RunArgs),
+    /// Print what flows on a running pipeline's service (rig, frames, particles, clusters,
+    /// trajectories).
+    Tap(TapArgs),
+    /// The scene-flow demo: both Middlebury Teddy layouts with the default engine.
+    FlowDemo,
 }
 
 #[derive(Args, Debug)]
@@ -77,6 +85,51 @@ struct TrackArgs {
     no_centre_correction: bool,
     #[command(flatten)]
     engine: EngineArgs,
+}
+
+#[derive(Args, Debug)]
+struct RunArgs {
+    /// Pipeline file (TOML; see deploy/pipelines/). Flags override its fields.
+    pipeline: Option<PathBuf>,
+    /// Recording folder to replay.
+    #[arg(long)]
+    recording: Option<PathBuf>,
+    /// Synthetic scene for ingest to render as it goes (signer-3cam, hands-cross, ...).
+    #[arg(long)]
+    preset: Option<String>,
+    /// Delivery mode: replay (nothing dropped) or live (latest wins).
+    #[arg(long)]
+    mode: Option<String>,
+    /// JSON Lines file for the trajectories (default `out/trajectories.jsonl`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Pace of the source: max or recorded.
+    #[arg(long)]
+    pace: Option<String>,
+    /// Replay the source forever (until Ctrl-C).
+    #[arg(long = "loop")]
+    looped: bool,
+    /// Publish only the first N frame sets.
+    #[arg(long)]
+    frames: Option<u64>,
+    /// Prefix of the service names (to run two pipelines side by side).
+    #[arg(long)]
+    services: Option<String>,
+    /// Engine variant: handflow or paper.
+    #[arg(long)]
+    variant: Option<String>,
+}
+
+#[derive(Args, Debug)]
+struct TapArgs {
+    /// Service: rig, frames, particles, clusters or trajectories.
+    service: String,
+    /// Prefix of the pipeline's service names.
+    #[arg(long, default_value = handflow_protocol::ipc::DEFAULT_PREFIX)]
+    services: String,
+    /// Stop after N messages.
+    #[arg(long)]
+    count: Option<u64>,
 }
 
 #[derive(Args, Debug)]
@@ -267,8 +320,9 @@ macro_rules! out {
 
 /// Entry point of the binary.
 pub fn main() -> ExitCode {
-    init_logging();
     let cli = Cli::parse();
+    // The launcher reports what its stages do; other commands only warn.
+    init_logging(if matches!(cli.command, None | Some(Command::Run(_))) { "info" } else { "warn" });
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) if is_broken_pipe(&err) => ExitCode::SUCCESS,
@@ -283,9 +337,9 @@ fn is_broken_pipe(err: &anyhow::Error) -> bool {
     err.chain().any(|e| e.downcast_ref::<std::io::Error>().is_some_and(|e| e.kind() == std::io::ErrorKind::BrokenPipe))
 }
 
-fn init_logging() {
+fn init_logging(default_level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("HANDFLOW_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
@@ -295,7 +349,12 @@ fn init_logging() {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
-        None => demo(),
+        None => run_streaming(&RunArgs::default()),
+        Some(Command::FlowDemo) => demo(),
+        Some(Command::Run(args)) => run_streaming(&args),
+        Some(Command::Tap(args)) => {
+            crate::tap::tap(&args.service, &args.services, args.count, &mut std::io::stdout().lock())
+        }
         Some(Command::Eval(EvalCommand::Middlebury(args))) => eval_middlebury(&args),
         Some(Command::Eval(EvalCommand::Skin(args))) => eval_skin(&args),
         Some(Command::Bench(BenchCommand::Flow(args))) => bench_flow(&args),
@@ -307,6 +366,104 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Overlay(args)) => overlay(&args),
         Some(Command::Eval(EvalCommand::Tracks(args))) => eval_tracks(&args),
     }
+}
+
+impl Default for RunArgs {
+    fn default() -> Self {
+        Self {
+            pipeline: None,
+            recording: None,
+            preset: None,
+            mode: None,
+            out: None,
+            pace: None,
+            looped: false,
+            frames: None,
+            services: None,
+            variant: None,
+        }
+    }
+}
+
+/// Where the demo renders its recording and writes its trajectories.
+const DEMO_RECORDING: &str = "out/signer-3cam";
+const DEMO_TRAJECTORIES: &str = "out/signer-3cam-trajectories.jsonl";
+
+/// `handflow run`: the pipeline from the file and flags; without a source, the demo
+/// (`signer-3cam`, rendered first if need be, replayed through the four processes and
+/// checked against its truth).
+fn run_streaming(args: &RunArgs) -> Result<()> {
+    use crate::launcher::{run_pipeline, Pipeline};
+    let mut p = match &args.pipeline {
+        Some(path) => Pipeline::load(path)?,
+        None => Pipeline::default(),
+    };
+    if args.recording.is_some() {
+        p.recording.clone_from(&args.recording);
+        p.preset = None;
+    }
+    if args.preset.is_some() {
+        p.preset.clone_from(&args.preset);
+        p.recording = None;
+    }
+    for (field, value) in
+        [(&mut p.mode, &args.mode), (&mut p.services, &args.services), (&mut p.variant, &args.variant)]
+    {
+        if let Some(v) = value {
+            field.clone_from(v);
+        }
+    }
+    if args.out.is_some() {
+        p.out.clone_from(&args.out);
+    }
+    if args.pace.is_some() {
+        p.pace.clone_from(&args.pace);
+    }
+    p.looped |= args.looped;
+    if args.frames.is_some() {
+        p.frames = args.frames;
+    }
+    let demo = p.recording.is_none() && p.preset.is_none();
+    if demo {
+        let rec = PathBuf::from(DEMO_RECORDING);
+        if !rec.join("frames.csv").is_file() {
+            out!("handflow demo: rendering the built-in `signer-3cam` scene into {} first", rec.display());
+            let spec = scene_spec(None, Some("signer-3cam"))?;
+            let renderer = Renderer::new(&spec).map_err(anyhow::Error::msg)?;
+            clear_output(&rec, true)?;
+            write_recording(&renderer, &rec, spec.frames)?;
+        }
+        p.recording = Some(rec);
+        if p.out.is_none() {
+            p.out = Some(PathBuf::from(DEMO_TRAJECTORIES));
+        }
+    }
+    if p.out.is_none() {
+        p.out = Some(PathBuf::from("out/trajectories.jsonl"));
+    }
+    let report = run_pipeline(&p)?;
+    let out_path = p.out.clone().unwrap_or_default();
+    let restarts: Vec<String> =
+        report.restarts.iter().filter(|(_, n)| *n > 0).map(|(s, n)| format!("{s} {n}x")).collect();
+    out!(
+        "{} after {:.1} s{}; trajectories in `{}`, live samples on `{}`",
+        if report.completed { "stream ended" } else { "stopped" },
+        report.seconds,
+        if restarts.is_empty() { String::new() } else { format!(" (restarts: {})", restarts.join(", ")) },
+        out_path.display(),
+        handflow_protocol::ipc::ServiceNames::new(&p.services).trajectories()
+    );
+    if let (true, Some(rec)) = (report.completed, &p.recording) {
+        let rec = handflow_ingest::Recording::open(rec)?;
+        if rec.truth_path().is_some() && out_path.is_file() {
+            let s = evaluate_tracks(&rec, &read_tracks(&out_path)?)?;
+            out!("against the recording's truth ({} frames, {} identity switches):", s.frames, s.identity_switches);
+            for (name, o) in [("head", &s.head), ("left_hand", &s.left_hand), ("right_hand", &s.right_hand)] {
+                out!("  {name:<11} agreement {:6.1} %  3D rmse {:.3} m", o.agreement * 100.0, o.rmse_3d_m);
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The no-argument demo: both layouts of the built-in scene with the default engine.

@@ -469,6 +469,28 @@ pub fn trajectories_input(
     input(node, name, &service, buffer)
 }
 
+macro_rules! tap_input {
+    ($fn:ident, $payload:ty, $header:ty, $what:literal) => {
+        #[doc = concat!("A subscriber of ", $what, " on an existing service `name`, whatever its mode (for `handflow tap`).")]
+        pub fn $fn(node: &IpcNode, name: &str) -> Result<Input<$payload, $header>, IpcError> {
+            let service = node
+                .service_builder(&service_name(name)?)
+                .publish_subscribe::<$payload>()
+                .user_header::<$header>()
+                .open()
+                .map_err(|e| IpcError::new(name, format!("opening the service (is a pipeline running?): {e:?}")))?;
+            let buffer = service.static_config().subscriber_max_buffer_size();
+            input(node, name.to_owned(), &service, buffer)
+        }
+    };
+}
+
+tap_input!(tap_rig, [u8], RigHeader, "the rig calibration");
+tap_input!(tap_frames, [u8], FrameHeader, "frame sets");
+tap_input!(tap_particles, [ScenePoint], ParticleHeader, "particle sets");
+tap_input!(tap_clusters, ClusterSet, (), "labelled clusters");
+tap_input!(tap_trajectories, TrajectorySample, (), "trajectory samples");
+
 /// What a sample handler wants next.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Next {

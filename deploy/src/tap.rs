@@ -1,0 +1,130 @@
+//! `handflow tap SERVICE`: prints what flows on one of a running pipeline's services, one
+//! line per message (like `ros2 topic echo`), for debugging.
+
+use std::io::Write;
+use std::time::Duration;
+
+use anyhow::{bail, Result};
+use handflow_protocol::ipc::{self, Next, ServiceNames, SERVICE_SUFFIXES};
+use handflow_protocol::messages::{track_state, TrajectoryObject, OBJECT_LABELS};
+
+/// Prints up to `count` messages (all, until interrupted, when `None`) of service `suffix`
+/// (`rig`, `frames`, `particles`, `clusters` or `trajectories`) of the pipeline `prefix`.
+pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) -> Result<()> {
+    let names = ServiceNames::new(prefix);
+    let name = names.full(suffix);
+    let node = ipc::create_node("handflow-tap")?;
+    let mut seen = 0u64;
+    let idle = Duration::from_millis(500);
+    let mut line = |text: String| -> Result<Next> {
+        writeln!(out, "{text}")?;
+        seen += 1;
+        Ok(if count.is_some_and(|n| seen >= n) { Next::Stop } else { Next::Continue })
+    };
+    match suffix {
+        "rig" => {
+            let input = ipc::tap_rig(&node, &name)?;
+            ipc::serve(&input, idle, |s| {
+                let h = *s.user_header();
+                let check = h.validate(s.payload().len()).map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
+                line(format!(
+                    "rig version {} at {:.2} frames/s, {} bytes of TOML{check}",
+                    h.rig_version, h.frame_rate_hz, h.text_len
+                ))
+            })
+        }
+        "frames" => {
+            let input = ipc::tap_frames(&node, &name)?;
+            ipc::serve(&input, idle, |s| {
+                let h = *s.user_header();
+                let check = h.validate(s.payload().len()).map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
+                let age = ms_since(h.capture_unix_ns);
+                if h.is_end_of_stream() {
+                    return line(format!("frames seq {} END OF STREAM{check}", h.sequence));
+                }
+                line(format!(
+                    "frames seq {} frame {} t {:.3} s: {} x {}x{} RGB8, {} bytes, captured {age:.1} ms ago{check}",
+                    h.sequence, h.frame, h.timestamp_s, h.view_count, h.width, h.height, h.payload_len
+                ))
+            })
+        }
+        "particles" => {
+            let input = ipc::tap_particles(&node, &name)?;
+            ipc::serve(&input, idle, |s| {
+                let h = *s.user_header();
+                let check = h.validate(s.payload().len()).map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
+                if h.is_end_of_stream() {
+                    return line(format!("particles seq {} END OF STREAM{check}", h.sequence));
+                }
+                let weight: f64 = s.payload().iter().map(|p| f64::from(p.weight)).sum();
+                line(format!(
+                    "particles seq {} frame {} t {:.3} s: {} points, total weight {weight:.1}, flow {:.1} ms, captured {:.1} ms ago{check}",
+                    h.sequence,
+                    h.frame,
+                    h.timestamp_s,
+                    h.point_count,
+                    h.flow_seconds * 1e3,
+                    ms_since(h.capture_unix_ns)
+                ))
+            })
+        }
+        "clusters" => {
+            let input = ipc::tap_clusters(&node, &name)?;
+            ipc::serve(&input, idle, |s| {
+                let c = *s.payload();
+                let check = c.validate().map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
+                if c.is_end_of_stream() {
+                    return line(format!("clusters seq {} END OF STREAM{check}", c.sequence));
+                }
+                let objects: Vec<String> = OBJECT_LABELS
+                    .iter()
+                    .zip(&c.objects)
+                    .map(|(l, o)| format!("{l} {} mass {:.2} {}", fmt_pos(o.position), o.mass, state_name(o.state)))
+                    .collect();
+                line(format!("clusters seq {} frame {}: {}{check}", c.sequence, c.frame, objects.join(" | ")))
+            })
+        }
+        "trajectories" => {
+            let input = ipc::tap_trajectories(&node, &name)?;
+            ipc::serve(&input, idle, |s| {
+                let t = *s.payload();
+                let check = t.validate().map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
+                if t.is_end_of_stream() {
+                    return line(format!("trajectories seq {} END OF STREAM{check}", t.sequence));
+                }
+                let objects: Vec<String> =
+                    OBJECT_LABELS.iter().zip(&t.objects).map(|(l, o)| fmt_object(l, o)).collect();
+                line(format!(
+                    "trajectories seq {} frame {} t {:.3} s: {} | latency {:.1} ms, {} dropped{check}",
+                    t.sequence,
+                    t.frame,
+                    t.timestamp_s,
+                    objects.join(" | "),
+                    t.published_unix_ns.saturating_sub(t.capture_unix_ns) as f64 * 1e-6,
+                    t.dropped_frames
+                ))
+            })
+        }
+        other => bail!("unknown service `{other}` (services: {})", SERVICE_SUFFIXES.join(", ")),
+    }
+}
+
+fn ms_since(unix_ns: u64) -> f64 {
+    ipc::unix_now_ns().saturating_sub(unix_ns) as f64 * 1e-6
+}
+
+fn fmt_pos(p: [f64; 3]) -> String {
+    format!("({:+.3} {:+.3} {:+.3})", p[0], p[1], p[2])
+}
+
+fn state_name(state: u32) -> &'static str {
+    match state {
+        track_state::TRACKED => "tracked",
+        track_state::PREDICTED => "predicted",
+        _ => "lost",
+    }
+}
+
+fn fmt_object(label: &str, o: &TrajectoryObject) -> String {
+    format!("{label} {} {} {:.2}", fmt_pos(o.position), state_name(o.state), o.confidence)
+}
