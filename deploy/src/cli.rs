@@ -87,7 +87,7 @@ struct TrackArgs {
     engine: EngineArgs,
 }
 
-#[derive(Args, Debug)]
+#[derive(Args, Debug, Default)]
 struct RunArgs {
     /// Pipeline file (TOML; see deploy/pipelines/). Flags override its fields.
     pipeline: Option<PathBuf>,
@@ -365,23 +365,6 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Track(args)) => track(&args),
         Some(Command::Overlay(args)) => overlay(&args),
         Some(Command::Eval(EvalCommand::Tracks(args))) => eval_tracks(&args),
-    }
-}
-
-impl Default for RunArgs {
-    fn default() -> Self {
-        Self {
-            pipeline: None,
-            recording: None,
-            preset: None,
-            mode: None,
-            out: None,
-            pace: None,
-            looped: false,
-            frames: None,
-            services: None,
-            variant: None,
-        }
     }
 }
 
