@@ -216,6 +216,13 @@ impl<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug + ZeroCopySen
         true
     }
 
+    /// Connects to subscribers that arrived since the last send and hands them the
+    /// history (iceoryx2 delivers history when the publisher notices a subscriber, so a
+    /// publisher that sends rarely, like the rig's, calls this while it waits).
+    pub fn update_connections(&self) {
+        let _ = self.publisher.update_connections();
+    }
+
     /// The service's name.
     pub fn name(&self) -> &str {
         &self.name
@@ -561,7 +568,7 @@ pub fn serve<I: Receive, E: From<IpcError>>(
         .attach_deadline(input.wake_listener(), idle)
         .map_err(|e| IpcError::new(&name, format!("attaching to the WaitSet: {e:?}")))?;
     let mut result = Ok(());
-    let on_event = |_: WaitSetAttachmentId<Ipc>| {
+    let mut on_event = |_: WaitSetAttachmentId<Ipc>| {
         let _ = input.wake_listener().try_wait(|_| {});
         loop {
             match input.receive_one() {
@@ -581,7 +588,11 @@ pub fn serve<I: Receive, E: From<IpcError>>(
             }
         }
     };
-    waitset.wait_and_process(on_event).map_err(|e| IpcError::new(&name, format!("WaitSet: {e:?}")))?;
+    // Drain once before waiting: a subscriber only connects to its publishers (and only then
+    // holds back a lossless one) on a receive, and samples sent before this wake nobody.
+    if on_event(WaitSetAttachmentId::from_guard(&_guard)) == CallbackProgression::Continue {
+        waitset.wait_and_process(on_event).map_err(|e| IpcError::new(&name, format!("WaitSet: {e:?}")))?;
+    }
     result
 }
 

@@ -24,3 +24,56 @@ pub fn cropped_teddy(dir: &std::path::Path, x0: u32, y0: u32, width: u32, height
     crop.save(&out).expect("cropped scene saves");
     Some(out)
 }
+
+/// The folder holding the binaries of this build (`target/<profile>`), where the launcher
+/// and the four stage binaries are.
+pub fn binaries_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("the test knows its path");
+    // target/<profile>/deps/<test> -> target/<profile>
+    let dir = exe.parent().and_then(|d| d.parent()).expect("test binary inside target/<profile>/deps").to_path_buf();
+    for name in ["handflow", "handflow-ingest", "handflow-flow", "handflow-cluster", "handflow-publish"] {
+        assert!(
+            dir.join(name).is_file(),
+            "`{}` is missing: run the tests with `cargo test --workspace`, which builds every binary",
+            dir.join(name).display()
+        );
+    }
+    dir
+}
+
+/// A service prefix no other test (or run on this machine) uses.
+pub fn unique_prefix(test: &str) -> String {
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
+    format!("test-{test}-{}-{nanos}", std::process::id())
+}
+
+/// Renders the first `frames` frames of a built-in scene into `dir/<preset>`, at
+/// `width x height` when given (the scene's cameras keep their field of view).
+pub fn render_preset(dir: &std::path::Path, preset: &str, frames: u32, size: Option<(u32, u32)>) -> PathBuf {
+    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
+    let mut spec = SceneSpec::preset(preset).expect("a built-in preset");
+    spec.frames = frames;
+    if let Some((w, h)) = size {
+        spec.width = w;
+        spec.height = h;
+    }
+    let renderer = Renderer::new(&spec).expect("the preset renders");
+    let out = dir.join(preset);
+    write_recording(&renderer, &out, frames).expect("the recording writes");
+    out
+}
+
+/// Process ids of running `binary` processes whose command line holds `needle`.
+pub fn pids_of(binary: &str, needle: &str) -> Vec<i32> {
+    let Ok(entries) = std::fs::read_dir("/proc") else { return Vec::new() };
+    entries
+        .filter_map(|e| e.ok())
+        .filter_map(|e| e.file_name().to_str().and_then(|n| n.parse::<i32>().ok()))
+        .filter(|pid| {
+            let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+            let args: Vec<&[u8]> = cmdline.split(|b| *b == 0).collect();
+            let is_binary = args.first().is_some_and(|a| a.ends_with(binary.as_bytes()));
+            is_binary && args.contains(&needle.as_bytes())
+        })
+        .collect()
+}

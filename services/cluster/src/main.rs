@@ -49,7 +49,7 @@ fn run(args: Args) -> Result<()> {
     let mut stage = new_stage();
     let mut connected = false;
     tracing::info!("ready: reference `{}`, {} mode", rig.cameras[reference].name, args.mode);
-    ipc::serve(&particles, Duration::from_millis(250), |sample| -> Result<Next> {
+    ipc::serve(&particles, Duration::from_millis(100), |sample| -> Result<Next> {
         let header = *sample.user_header();
         if let Err(e) = header.validate(sample.payload().len()) {
             tracing::error!("skipping a malformed particle set: {e}");

@@ -65,12 +65,16 @@ fn run(args: Args) -> Result<()> {
         rig.cameras[reference].name,
         args.mode
     );
-    let mut stream: FlowStream<FrameMeta> = FlowStream::new(engine);
+    let mut stream: FlowStream<FrameMeta> = match args.mode {
+        Mode::Replay => FlowStream::new(engine),
+        // Live: after the warm-up, go on from the newest frames rather than catch up.
+        Mode::Live => FlowStream::new(engine).with_backlog_limit(3),
+    };
     let mut connected = false;
     let mut last_sequence: Option<u64> = None;
     let mut dropped = 0u64;
     let mut failure: Option<anyhow::Error> = None;
-    ipc::serve(&frames, Duration::from_millis(250), |sample| -> Result<Next> {
+    ipc::serve(&frames, Duration::from_millis(100), |sample| -> Result<Next> {
         let header = *sample.user_header();
         if let Err(e) = header.validate(sample.payload().len()) {
             tracing::error!("skipping a malformed frame set: {e}");
@@ -98,6 +102,16 @@ fn run(args: Args) -> Result<()> {
                 StreamError::Stopped
             })
         };
+        if let Some(last) = last_sequence {
+            if header.sequence > last + 1 {
+                dropped += header.sequence - last - 1;
+                tracing::warn!(
+                    "frame sets {}..{} never arrived ({dropped} dropped so far)",
+                    last + 1,
+                    header.sequence - 1
+                );
+            }
+        }
         if header.is_end_of_stream() {
             let finished = stream.finish(&mut publish);
             if let Some(e) = failure.take() {
@@ -108,16 +122,6 @@ fn run(args: Args) -> Result<()> {
             tracing::info!("end of stream after frame set {}; {dropped} frame set(s) dropped", header.sequence);
             last_sequence = None;
             return Ok(Next::Continue);
-        }
-        if let Some(last) = last_sequence {
-            if header.sequence > last + 1 {
-                dropped += header.sequence - last - 1;
-                tracing::warn!(
-                    "frame sets {}..{} never arrived ({dropped} dropped so far)",
-                    last + 1,
-                    header.sequence - 1
-                );
-            }
         }
         last_sequence = Some(header.sequence);
         let meta = FrameMeta {

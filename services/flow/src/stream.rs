@@ -171,6 +171,9 @@ pub struct FlowStream<M> {
     pending_models: VecDeque<u64>,
     /// Push index and metadata of frames not yet estimated, oldest first.
     waiting: VecDeque<(u64, M)>,
+    /// Of the frames held for the warm-up, only the newest this many are estimated (live
+    /// streams: the older ones are stale by then).
+    backlog_limit: Option<usize>,
 }
 
 /// Frames the warm-up looks at last: frame `(WARM_UP_ROUNDS - 1) * DEFAULT_DETECT_EVERY`.
@@ -189,7 +192,16 @@ impl<M> FlowStream<M> {
             pushed: 0,
             pending_models: VecDeque::new(),
             waiting: VecDeque::new(),
+            backlog_limit: None,
         }
+    }
+
+    /// Estimates only the newest `frames` of those held for the warm-up (at least 2, what
+    /// the forwards/backwards window needs); the older ones are skipped. For live streams,
+    /// where catching up on stale frames only adds latency.
+    pub fn with_backlog_limit(mut self, frames: usize) -> Self {
+        self.backlog_limit = Some(frames.max(2));
+        self
     }
 
     /// The engine (its configuration, cameras, last estimate).
@@ -254,7 +266,8 @@ impl<M> FlowStream<M> {
             let models = self.faces.recv()?;
             self.engine.set_skin_models(&models)?;
         }
-        for (meta, frame_set) in held {
+        let skip = self.backlog_limit.map_or(0, |keep| held.len().saturating_sub(keep));
+        for (meta, frame_set) in held.into_iter().skip(skip) {
             self.push_now(meta, &frame_set, on_estimate)?;
         }
         Ok(())

@@ -124,14 +124,29 @@ fn run(args: Args) -> Result<()> {
     let names = ServiceNames::new(&args.services);
     let node = ipc::create_node("handflow-ingest")?;
     // Kept alive: the rig's history lives as long as its publisher.
-    let _rig = publish_rig(&node, &names, source.rig(), source.frame_rate())?;
+    let rig = publish_rig(&node, &names, source.rig(), source.frame_rate())?;
     let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
-    // Replay loses nothing: wait for the flow stage before the first frame.
-    if args.mode == Mode::Replay {
-        tracing::info!("waiting for a subscriber on `{}`", frames.name());
-        if !frames.wait_for_subscribers(&node, 1, Duration::MAX) {
-            return Ok(());
+    // Replay loses nothing: the flow stage must listen before a frame goes out (at the start
+    // and after a restart of flow). Meanwhile late joiners get the rig.
+    let wait_for_flow = || -> bool {
+        let mut announced = false;
+        loop {
+            rig.update_connections();
+            if frames.subscribers() > 0 {
+                frames.update_connections();
+                return true;
+            }
+            if !announced {
+                tracing::info!("waiting for a subscriber on `{}`", frames.name());
+                announced = true;
+            }
+            if node.wait(Duration::from_millis(5)).is_err() {
+                return false;
+            }
         }
+    };
+    if args.mode == Mode::Replay && !wait_for_flow() {
+        return Ok(());
     }
     let total = match (args.looped, args.frames) {
         (true, n) => n.unwrap_or(u64::MAX),
@@ -154,6 +169,10 @@ fn run(args: Args) -> Result<()> {
                     return Ok(());
                 }
             }
+        }
+        rig.update_connections();
+        if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
+            return Ok(());
         }
         // Zero-initialised, so the decoder writes into plain bytes; the image is decoded
         // into the shared memory itself.
@@ -193,7 +212,9 @@ fn run(args: Args) -> Result<()> {
     frames.notify()?;
     tracing::info!("end of stream after {total} frame sets; waiting to be stopped");
     // Stay until stopped: the samples in flight live in this process's memory.
-    while node.wait(Duration::from_millis(200)).is_ok() {}
+    while node.wait(Duration::from_millis(100)).is_ok() {
+        rig.update_connections();
+    }
     Ok(())
 }
 

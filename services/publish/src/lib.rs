@@ -104,13 +104,19 @@ pub fn trajectory_sample(set: &ClusterSet, dropped_frames: u64, published_unix_n
     }
 }
 
-/// Frames lost upstream, from the ingest sequence numbers that reach the last stage. A
-/// forwards/backwards engine never estimates the first frame of a stream it joins, so the
-/// first sequence seen is where counting starts.
-#[derive(Clone, Debug, Default)]
+/// Frames lost upstream, from the ingest sequence numbers that reach the last stage. The
+/// first frame of a stream (sequence 0) never has an estimate (forwards/backwards needs its
+/// predecessor), so counting expects sequence 1 first.
+#[derive(Clone, Debug)]
 pub struct SequenceGaps {
     next: Option<u64>,
     lost: u64,
+}
+
+impl Default for SequenceGaps {
+    fn default() -> Self {
+        Self { next: Some(1), lost: 0 }
+    }
 }
 
 impl SequenceGaps {
@@ -159,6 +165,20 @@ impl<W: Write> JsonLinesSink<W> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sequence_gaps_report_exactly_the_missing_sequences() {
+        let mut gaps = SequenceGaps::default();
+        assert_eq!(gaps.arrive(1), 1..1);
+        assert_eq!(gaps.arrive(2), 2..2);
+        assert_eq!(gaps.arrive(6), 3..6);
+        // Late or repeated sequences are not losses.
+        assert_eq!(gaps.arrive(4), 4..4);
+        assert_eq!(gaps.arrive(7), 7..7);
+        assert_eq!(gaps.lost(), 3);
+        let mut late_start = SequenceGaps::default();
+        assert_eq!(late_start.arrive(19), 1..19);
+    }
 
     #[test]
     fn records_are_one_json_object_per_line_with_the_documented_keys() {

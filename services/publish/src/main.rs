@@ -76,7 +76,7 @@ fn run(args: Args) -> Result<()> {
     let mut gaps = SequenceGaps::default();
     let mut published = 0u64;
     let mut latencies = Latencies::default();
-    ipc::serve(&clusters, Duration::from_millis(250), |sample| -> Result<Next> {
+    ipc::serve(&clusters, Duration::from_millis(100), |sample| -> Result<Next> {
         let set = *sample.payload();
         drop(sample);
         if let Err(e) = set.validate() {
@@ -84,7 +84,9 @@ fn run(args: Args) -> Result<()> {
             return Ok(Next::Continue);
         }
         let end = set.is_end_of_stream();
-        if !end {
+        // The end of stream carries the sequence after the last frame: frames lost just
+        // before it count too.
+        {
             let lost = gaps.arrive(set.sequence);
             if !lost.is_empty() {
                 tracing::warn!(

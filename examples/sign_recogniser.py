@@ -1,0 +1,150 @@
+#!/usr/bin/env python3
+"""A minimal "sign recogniser" in Python: how a downstream program plugs into handflow.
+
+It subscribes to the trajectory samples of a running pipeline (shared memory, through the
+`iceoryx2` package from PyPI: `pip install iceoryx2==0.10.0`) and reports two simple
+events: a hand coming to the face, and the hands crossing. `sign_recogniser.rs` beside it
+does the same in Rust.
+
+    python3 examples/sign_recogniser.py &        # before the pipeline: it sees every sample
+    target/release/handflow run --recording out/hands-cross
+"""
+
+import argparse
+import ctypes
+import math
+import sys
+
+import iceoryx2 as iox2
+
+PROTOCOL_VERSION = 1
+END_OF_STREAM = 1
+LOST = 2
+# A hand is at the face closer than this to the head's centre (metres), and leaves it
+# farther than the second (hysteresis: no flicker at the boundary).
+AT_FACE_M = 0.20
+LEFT_FACE_M = 0.25
+
+
+class TrajectoryObject(ctypes.Structure):
+    """One object's estimate; the layout of handflow_protocol::messages::TrajectoryObject."""
+
+    _fields_ = [
+        ("position", ctypes.c_double * 3),
+        ("velocity", ctypes.c_double * 3),
+        ("confidence", ctypes.c_double),
+        ("state", ctypes.c_uint32),
+        ("reserved", ctypes.c_uint32),
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "HandflowTrajectoryObject"
+
+
+class TrajectorySample(ctypes.Structure):
+    """Every object at one frame; the layout of handflow_protocol::messages::TrajectorySample."""
+
+    _fields_ = [
+        ("protocol_version", ctypes.c_uint32),
+        ("flags", ctypes.c_uint32),
+        ("sequence", ctypes.c_uint64),
+        ("frame", ctypes.c_uint64),
+        ("timestamp_s", ctypes.c_double),
+        ("capture_unix_ns", ctypes.c_uint64),
+        ("published_unix_ns", ctypes.c_uint64),
+        ("dropped_frames", ctypes.c_uint64),
+        ("objects", TrajectoryObject * 3),  # head, left hand, right hand
+    ]
+
+    @staticmethod
+    def type_name() -> str:
+        return "HandflowTrajectorySample"
+
+
+class Recogniser:
+    """Events from a stream of samples."""
+
+    def __init__(self):
+        self.at_face = [False, False]
+        self.sides = None  # right hand to left hand when first seen; crossing reverses it
+        self.crossed = False
+
+    def observe(self, s):
+        events = []
+        head, left, right = s.objects[0], s.objects[1], s.objects[2]
+        for k, (hand, name) in enumerate(((left, "left hand"), (right, "right hand"))):
+            if hand.state == LOST or head.state == LOST:
+                continue
+            d = math.dist(tuple(hand.position), tuple(head.position))
+            if not self.at_face[k] and d < AT_FACE_M:
+                self.at_face[k] = True
+                events.append(f"{name} at the face")
+            elif self.at_face[k] and d > LEFT_FACE_M:
+                self.at_face[k] = False
+                events.append(f"{name} leaves the face")
+        if left.state != LOST and right.state != LOST:
+            between = [a - b for a, b in zip(left.position, right.position)]
+            if self.sides is None:
+                self.sides = between
+            crossed = sum(a * b for a, b in zip(between, self.sides)) < 0.0
+            if crossed != self.crossed:
+                self.crossed = crossed
+                events.append("hands crossed" if crossed else "hands uncrossed")
+        return events
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--services", default="handflow", help="prefix of the pipeline's service names")
+    args = parser.parse_args()
+
+    iox2.set_log_level_from_env_or(iox2.LogLevel.Error)
+    node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
+    name = f"{args.services}/trajectories"
+    # The publisher owns the service's settings (replay or live): open it as it is, and
+    # wait for the pipeline if it has not started yet.
+    while True:
+        try:
+            service = node.service_builder(iox2.ServiceName.new(name)).publish_subscribe(TrajectorySample).open()
+            break
+        except iox2.PublishSubscribeOpenError:
+            node.wait(iox2.Duration.from_millis(50))
+    subscriber = service.subscriber_builder().create()
+    # Wake on the publisher's notification (the event service of the same name), or after
+    # 100 ms at the latest.
+    listener = node.service_builder(iox2.ServiceName.new(name)).event().open_or_create().listener_builder().create()
+    waitset = iox2.WaitSetBuilder.new().create(iox2.ServiceType.Ipc)
+    guard = waitset.attach_deadline(listener, iox2.Duration.from_millis(100))
+    print(f"listening on `{name}`", flush=True)
+
+    recogniser = Recogniser()
+    samples, events, first, last, dropped = 0, 0, None, 0, 0
+    while True:
+        listener.try_wait_all() if hasattr(listener, "try_wait_all") else listener.try_wait()
+        while True:
+            sample = subscriber.receive()
+            if sample is None:
+                break
+            s = sample.payload().contents
+            if s.protocol_version != PROTOCOL_VERSION:
+                print(f"skipping a sample of protocol version {s.protocol_version}", file=sys.stderr)
+                continue
+            if s.flags & END_OF_STREAM:
+                frames = "none" if first is None else f"{first}..={last}"
+                print(f"summary: {samples} samples, frames {frames}, {dropped} dropped upstream, {events} events")
+                return 0
+            samples += 1
+            first = s.frame if first is None else first
+            last, dropped = s.frame, s.dropped_frames
+            for event in recogniser.observe(s):
+                events += 1
+                print(f"frame {s.frame} t {s.timestamp_s:.3f} s: {event}", flush=True)
+        _, result = waitset.wait_and_process()
+        if result in (iox2.WaitSetRunResult.TerminationRequest, iox2.WaitSetRunResult.Interrupt):
+            del guard
+            return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,376 @@
+//! End-to-end tests of the streaming service: the real launcher and the four real stage
+//! processes over real iceoryx2 shared memory, on rendered recordings.
+//!
+//! Each test uses its own service prefix; they run one at a time (a pipeline wants both
+//! cores).
+
+#![allow(clippy::unwrap_used)]
+
+use std::collections::BTreeSet;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use handflow::track::{track_recording, TrackOptions};
+use handflow::track_eval::{evaluate_tracks, read_tracks};
+use handflow_e2e::{binaries_dir, pids_of, render_preset, unique_prefix};
+use handflow_ingest::Recording;
+use handflow_protocol::ipc::{self, Mode, ServiceNames};
+use handflow_protocol::messages::{FrameHeader, RigHeader, END_OF_STREAM, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION};
+
+static ONE_PIPELINE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Standard error of a child, line by line, with the time each line arrived.
+#[derive(Clone, Default)]
+struct Log(Arc<Mutex<Vec<(Instant, String)>>>);
+
+impl Log {
+    fn capture(child: &mut Child) -> Self {
+        let log = Log::default();
+        let stderr = child.stderr.take().unwrap();
+        let lines = log.0.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines() {
+                let Ok(line) = line else { break };
+                lines.lock().unwrap().push((Instant::now(), line));
+            }
+        });
+        log
+    }
+
+    fn text(&self) -> String {
+        self.0.lock().unwrap().iter().map(|(_, l)| l.as_str()).collect::<Vec<_>>().join("\n")
+    }
+
+    /// When the first line after `after` containing every needle arrived.
+    fn first_after(&self, after: Instant, needles: &[&str]) -> Option<Instant> {
+        self.0
+            .lock()
+            .unwrap()
+            .iter()
+            .find(|(t, l)| *t >= after && needles.iter().all(|n| l.contains(n)))
+            .map(|(t, _)| *t)
+    }
+}
+
+fn launcher(args: &[&str]) -> Child {
+    Command::new(binaries_dir().join("handflow"))
+        .arg("run")
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// Waits for `child` to exit, killing it after `timeout`.
+fn wait_with_timeout(child: &mut Child, timeout: Duration) -> std::process::ExitStatus {
+    let started = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status;
+        }
+        if started.elapsed() > timeout {
+            let _ = child.kill();
+            panic!("the pipeline did not end within {timeout:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn lines_in(path: &Path) -> usize {
+    std::fs::read_to_string(path).map(|t| t.lines().count()).unwrap_or(0)
+}
+
+fn str(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn replay_through_the_four_processes_matches_the_truth_and_the_offline_tracker_frame_for_frame() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 60;
+    let rec_dir = render_preset(dir.path(), "signer-3cam", frames, None);
+    let out = dir.path().join("trajectories.jsonl");
+    let prefix = unique_prefix("replay");
+    let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
+    let log = Log::capture(&mut run);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
+    assert!(status.success(), "the run failed:\n{}", log.text());
+
+    let streamed = read_tracks(&out).unwrap();
+    let numbers: Vec<u64> = streamed.iter().map(|r| r.frame).collect();
+    // Every frame but the first (forwards/backwards needs t-1), once each, in order.
+    assert_eq!(numbers, (1..u64::from(frames)).collect::<Vec<_>>(), "frames missing or repeated");
+
+    let mut offline = Vec::new();
+    track_recording(&rec_dir, &TrackOptions::default(), |r, _, _| {
+        offline.push(r.clone());
+        Ok(())
+    })
+    .unwrap();
+    // Byte for byte, as `handflow track` would write them.
+    let file = std::fs::read_to_string(&out).unwrap();
+    assert_eq!(file.lines().count(), offline.len());
+    for (line, record) in file.lines().zip(&offline) {
+        assert_eq!(
+            line,
+            serde_json::to_string(record).unwrap(),
+            "replay must give exactly what `handflow track` gives"
+        );
+    }
+
+    let rec = Recording::open(&rec_dir).unwrap();
+    let scores = evaluate_tracks(&rec, &streamed).unwrap();
+    assert_eq!(scores.frames, frames as usize - 1);
+    assert_eq!(scores.head.agreement, 1.0, "{scores:?}");
+    assert!(scores.left_hand.agreement >= 0.95 && scores.right_hand.agreement >= 0.95, "{scores:?}");
+    assert_eq!(scores.identity_switches, 0);
+    for o in [&scores.head, &scores.left_hand, &scores.right_hand] {
+        assert!(o.rmse_3d_m < 0.03, "{scores:?}");
+    }
+    assert!(log.text().contains("0 frames lost upstream"), "{}", log.text());
+}
+
+/// The sequences the publisher reported lost (`frames lost upstream: sequence a..=b`).
+fn reported_losses(log: &str) -> BTreeSet<u64> {
+    let mut lost = BTreeSet::new();
+    for line in log.lines() {
+        let Some(rest) = line.split("frames lost upstream: sequence ").nth(1) else { continue };
+        let range = rest.split_whitespace().next().unwrap();
+        let (a, b) = range.split_once("..=").unwrap();
+        lost.extend(a.parse::<u64>().unwrap()..=b.parse::<u64>().unwrap());
+    }
+    lost
+}
+
+fn kill_mid_stream(binary: &str, rec_dir: &Path, frames: u32) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("trajectories.jsonl");
+    let prefix = unique_prefix(binary);
+    let mut run =
+        launcher(&["--recording", str(rec_dir), "--out", str(&out), "--services", &prefix, "--pace", "recorded"]);
+    let log = Log::capture(&mut run);
+    let started = Instant::now();
+    while lines_in(&out) < 40 {
+        assert!(started.elapsed() < Duration::from_secs(120), "no trajectories:\n{}", log.text());
+        assert!(run.try_wait().unwrap().is_none(), "the run ended early:\n{}", log.text());
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let victims = pids_of(binary, &prefix);
+    assert_eq!(victims.len(), 1, "one {binary} of this pipeline");
+    let killed_at = Instant::now();
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(victims[0]), nix::sys::signal::Signal::SIGKILL).unwrap();
+
+    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
+    let text = log.text();
+    assert!(status.success(), "the run failed after the kill:\n{text}");
+    let restarted = log.first_after(killed_at, &["restarting it"]).expect("the launcher restarts the stage");
+    let stage = binary.trim_start_matches("handflow-");
+    let ready = log.first_after(killed_at, &[&format!("handflow_{stage}"), "ready:"]).expect("the stage comes back");
+    let recovered = ready - killed_at;
+    let first_after = log.first_after(killed_at, &["frames lost upstream"]);
+
+    let records = read_tracks(&out).unwrap();
+    let present: BTreeSet<u64> = records.iter().map(|r| r.frame).collect();
+    assert_eq!(present.len(), records.len(), "no frame twice");
+    let missing: BTreeSet<u64> = (1..u64::from(frames)).filter(|f| !present.contains(f)).collect();
+    let reported = reported_losses(&text);
+    eprintln!(
+        "{binary} killed after {} trajectory samples: restarted after {:?}, ready after {recovered:?}, \
+         first trajectory after the gap reported after {:?}; frames lost: {missing:?}",
+        present.iter().filter(|f| **f < *missing.first().unwrap_or(&0)).count(),
+        restarted - killed_at,
+        first_after.map(|t| t - killed_at),
+    );
+    assert!(!missing.is_empty(), "a killed stage loses what it held");
+    assert_eq!(reported, missing, "the publisher reports exactly the frames that never arrived");
+    assert!(recovered < Duration::from_secs(1), "stage ready again {recovered:?} after the kill");
+    assert!(present.contains(&(u64::from(frames) - 1)), "the pipeline carries on to the last frame");
+    // Tracking resumes: the head is right again on the frames after the gap.
+    let rec = Recording::open(rec_dir).unwrap();
+    let after_gap: Vec<_> = records.iter().filter(|r| r.frame > *missing.last().unwrap() + 10).cloned().collect();
+    let scores = evaluate_tracks(&rec, &after_gap).unwrap();
+    assert!(scores.head.agreement >= 0.9, "{scores:?}");
+}
+
+#[test]
+fn killing_flow_or_cluster_mid_stream_restarts_it_and_reports_exactly_the_frames_lost() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 120;
+    let rec_dir = render_preset(dir.path(), "signer-3cam", frames, None);
+    kill_mid_stream("handflow-flow", &rec_dir, frames);
+    kill_mid_stream("handflow-cluster", &rec_dir, frames);
+}
+
+#[test]
+fn a_malformed_frame_set_is_skipped_with_a_logged_error_and_the_stream_goes_on() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 26u32;
+    let rec_dir = render_preset(dir.path(), "signer-3cam", frames, Some((160, 120)));
+    let prefix = unique_prefix("malformed");
+    let names = ServiceNames::new(&prefix);
+    let mut flow = Command::new(binaries_dir().join("handflow-flow"))
+        .args(["--services", &prefix])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let log = Log::capture(&mut flow);
+
+    // The frames go out from a thread of their own (iceoryx2 ports stay on the thread that
+    // made them): a lossless publisher blocks while the flow stage is busy, and the flow
+    // stage blocks while nobody reads its particles.
+    let (go_tx, go_rx) = std::sync::mpsc::channel::<()>();
+    let sender_log = log.clone();
+    let sender_names = names.clone();
+    let sender = std::thread::spawn(move || {
+        let rec = Recording::open(&rec_dir).unwrap();
+        let node = ipc::create_node("malformed-sender").unwrap();
+        let rig = ipc::rig_output(&node, &sender_names).unwrap();
+        let text = rec.rig().to_toml_string();
+        let mut sample = rig.publisher.loan_slice(text.len()).unwrap();
+        sample.payload_mut().copy_from_slice(text.as_bytes());
+        *sample.user_header_mut() = RigHeader {
+            protocol_version: PROTOCOL_VERSION,
+            rig_version: 1,
+            frame_rate_hz: 30.0,
+            text_len: text.len() as u64,
+        };
+        sample.send().unwrap();
+        let frames_out = ipc::frames_output(&node, &sender_names, Mode::Replay, rec.frame_set_len()).unwrap();
+        let started = Instant::now();
+        while frames_out.subscribers() == 0 {
+            rig.update_connections();
+            assert!(started.elapsed() < Duration::from_secs(30), "flow subscribes:\n{}", sender_log.text());
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        frames_out.update_connections();
+        go_rx.recv().unwrap();
+        let header = |sequence: u64| FrameHeader {
+            protocol_version: PROTOCOL_VERSION,
+            pixel_format: PIXEL_FORMAT_RGB8,
+            sequence,
+            frame: sequence,
+            timestamp_s: sequence as f64 / 30.0,
+            capture_unix_ns: ipc::unix_now_ns(),
+            rig_version: 1,
+            view_count: 3,
+            width: 160,
+            height: 120,
+            flags: 0,
+            reserved: 0,
+            payload_len: rec.frame_set_len() as u64,
+        };
+        // A header that disagrees with its payload: one byte more than it carries.
+        let mut bad = frames_out.publisher.loan_slice(rec.frame_set_len()).unwrap();
+        *bad.user_header_mut() = FrameHeader { payload_len: rec.frame_set_len() as u64 + 1, ..header(0) };
+        bad.send().unwrap();
+        frames_out.notify().unwrap();
+        for k in 0..u64::from(frames) {
+            let mut s = frames_out.publisher.loan_slice(rec.frame_set_len()).unwrap();
+            rec.read_frame_into(k, false, s.payload_mut()).unwrap();
+            *s.user_header_mut() = header(k);
+            s.send().unwrap();
+            frames_out.notify().unwrap();
+        }
+        let mut end = frames_out.publisher.loan_slice(0).unwrap();
+        *end.user_header_mut() = FrameHeader {
+            protocol_version: PROTOCOL_VERSION,
+            sequence: u64::from(frames),
+            flags: END_OF_STREAM,
+            ..FrameHeader::default()
+        };
+        end.send().unwrap();
+        frames_out.notify().unwrap();
+        // Stay until the flow stage has read everything from this process's memory.
+        go_rx.recv().unwrap();
+    });
+
+    let node = ipc::create_node("malformed-receiver").unwrap();
+    let particles = ipc::particles_input(&node, &names, Mode::Replay).unwrap();
+    let started = Instant::now();
+    while log.first_after(started - Duration::from_secs(60), &["ready:"]).is_none() {
+        assert!(started.elapsed() < Duration::from_secs(30), "flow gets ready:\n{}", log.text());
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    // A subscriber connects (and holds a lossless publisher back) on its first receive.
+    assert!(particles.subscriber.receive().unwrap().is_none());
+    go_tx.send(()).unwrap();
+    let mut estimated = Vec::new();
+    let started = Instant::now();
+    loop {
+        assert!(started.elapsed() < Duration::from_secs(120), "no end of stream:\n{}", log.text());
+        let Some(s) = particles.subscriber.receive().unwrap() else {
+            std::thread::sleep(Duration::from_millis(5));
+            continue;
+        };
+        let h = *s.user_header();
+        h.validate(s.payload().len()).unwrap();
+        if h.is_end_of_stream() {
+            break;
+        }
+        assert!(h.point_count > 0, "frame {} has particles", h.sequence);
+        estimated.push(h.sequence);
+    }
+    go_tx.send(()).unwrap();
+    sender.join().unwrap();
+    let _ = flow.kill();
+    let _ = flow.wait();
+    assert_eq!(estimated, (1..u64::from(frames)).collect::<Vec<_>>());
+    let text = log.text();
+    assert!(text.contains("skipping a malformed frame set") && text.contains("payload_len"), "{text}");
+}
+
+#[test]
+fn a_slow_subscriber_never_stalls_a_live_pipeline() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 150u32;
+    let rec_dir = render_preset(dir.path(), "signer-3cam", frames, None);
+    let out = dir.path().join("trajectories.jsonl");
+    let prefix = unique_prefix("live");
+    let names = ServiceNames::new(&prefix);
+    let node = ipc::create_node("slow-subscriber").unwrap();
+    // Subscribed before the pipeline starts, so it sees the stream from the beginning.
+    let slow = ipc::trajectories_input(&node, &names, Mode::Live).unwrap();
+    let started = Instant::now();
+    let mut run =
+        launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix, "--mode", "live"]);
+    let log = Log::capture(&mut run);
+    let mut received = 0;
+    let status = loop {
+        if let Some(status) = run.try_wait().unwrap() {
+            break status;
+        }
+        assert!(started.elapsed() < Duration::from_secs(120), "the live run did not end:\n{}", log.text());
+        if slow.subscriber.receive().unwrap().is_some() {
+            received += 1;
+            // Far slower than the stream's 30 samples per second.
+            std::thread::sleep(Duration::from_millis(300));
+        } else {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    };
+    let elapsed = started.elapsed();
+    assert!(status.success(), "{}", log.text());
+    let published = lines_in(&out);
+    eprintln!("live: {published} samples published in {elapsed:?}, the slow subscriber took {received}");
+    // 150 frames at 30 frames per second: 5 s of stream; a publisher held back by the slow
+    // subscriber would take 300 ms per sample.
+    assert!(elapsed < Duration::from_secs(5 + 15), "{elapsed:?}");
+    assert!(published >= 10, "the pipeline kept publishing: {published} samples\n{}", log.text());
+    // Whatever live mode dropped is counted, and every frame is accounted for.
+    let dropped = reported_losses(&log.text()).len();
+    assert_eq!(published + dropped, frames as usize - 1, "published + dropped = frames - 1\n{}", log.text());
+    assert!(received * 2 < published, "the slow subscriber lost samples instead of slowing the publisher");
+}
