@@ -174,6 +174,8 @@ fn run(args: Args) -> Result<()> {
         if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
             return Ok(());
         }
+        // The moment the frame set is taken: decoding it is part of the pipeline's latency.
+        let capture_unix_ns = ipc::unix_now_ns();
         // Zero-initialised, so the decoder writes into plain bytes; the image is decoded
         // into the shared memory itself.
         let mut sample = frames.publisher.loan_slice(frame_set_len).context("loaning a frame sample")?;
@@ -186,7 +188,7 @@ fn run(args: Args) -> Result<()> {
             sequence,
             frame,
             timestamp_s,
-            capture_unix_ns: ipc::unix_now_ns(),
+            capture_unix_ns,
             rig_version: 1,
             view_count,
             width,

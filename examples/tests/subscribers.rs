@@ -1,0 +1,95 @@
+//! The sign recogniser examples, Rust and Python, subscribed to a real pipeline: each
+//! receives every trajectory sample and reports the hands crossing.
+//!
+//! The Python half needs `pip install iceoryx2==0.10.0`; without it that half is skipped
+//! with a message, unless `HANDFLOW_REQUIRE_PYTHON` is set (as `.ci/run` does).
+
+#![allow(clippy::unwrap_used)]
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc::{channel, Receiver};
+use std::time::{Duration, Instant};
+
+use handflow_e2e::{binaries_dir, render_preset, unique_prefix};
+
+/// Starts a subscriber and waits until it listens; its stdout lines arrive on the receiver.
+fn start(mut command: Command) -> (Child, Receiver<String>) {
+    let mut child = command.stdout(Stdio::piped()).stderr(Stdio::inherit()).spawn().unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let first = rx.recv_timeout(Duration::from_secs(30)).expect("the subscriber starts");
+    assert!(first.starts_with("listening on"), "{first}");
+    (child, rx)
+}
+
+fn finish(mut child: Child, rx: &Receiver<String>) -> Vec<String> {
+    let started = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(started.elapsed() < Duration::from_secs(60), "the subscriber did not see the end of the stream");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(status.success());
+    rx.try_iter().collect()
+}
+
+fn python_has_iceoryx2() -> bool {
+    let ok = Command::new("python3").args(["-c", "import iceoryx2"]).output().is_ok_and(|o| o.status.success());
+    if !ok {
+        assert!(
+            std::env::var_os("HANDFLOW_REQUIRE_PYTHON").is_none(),
+            "python3 cannot import iceoryx2: pip install iceoryx2==0.10.0"
+        );
+        eprintln!("skipped the Python subscriber: python3 cannot import iceoryx2 (pip install iceoryx2==0.10.0)");
+    }
+    ok
+}
+
+#[test]
+fn rust_and_python_recognisers_get_every_sample_and_see_the_hands_cross() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 80u32;
+    let rec = render_preset(dir.path(), "hands-cross", frames, None);
+    let out = dir.path().join("trajectories.jsonl");
+    let prefix = unique_prefix("subscribers");
+
+    let mut rust = Command::new(env!("CARGO_BIN_EXE_sign-recogniser"));
+    rust.args(["--services", &prefix]);
+    let (rust_child, rust_rx) = start(rust);
+    let python = python_has_iceoryx2().then(|| {
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("sign_recogniser.py");
+        let mut py = Command::new("python3");
+        py.arg(script).args(["--services", &prefix]);
+        start(py)
+    });
+
+    let run = Command::new(binaries_dir().join("handflow"))
+        .args(["run", "--recording", rec.to_str().unwrap(), "--out", out.to_str().unwrap(), "--services", &prefix])
+        .stderr(Stdio::null())
+        .output()
+        .unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stdout));
+
+    let published = std::fs::read_to_string(&out).unwrap().lines().count();
+    assert_eq!(published, frames as usize - 1);
+    let expected_summary = format!("summary: {published} samples, frames 1..={}, 0 dropped upstream", frames - 1);
+    let rust_lines = finish(rust_child, &rust_rx);
+    let summary = rust_lines.last().unwrap();
+    assert!(summary.starts_with(&expected_summary), "{summary}");
+    assert!(rust_lines.iter().any(|l| l.ends_with("hands crossed")), "{rust_lines:?}");
+    if let Some((child, rx)) = python {
+        let python_lines = finish(child, &rx);
+        assert_eq!(python_lines, rust_lines, "both recognisers report the same");
+    }
+}
