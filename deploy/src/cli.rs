@@ -197,6 +197,45 @@ enum BenchCommand {
     Render(BenchRenderArgs),
     /// Clustering and labelling time per frame, against EM on every point.
     Cluster(BenchClusterArgs),
+    /// One hop of a frame set through iceoryx2 between processes, against copying it once.
+    Ipc(BenchIpcArgs),
+    /// The receiving process of `bench ipc`.
+    #[command(hide = true)]
+    IpcReceiver(IpcReceiverArgs),
+    /// The live pipeline on a recording at its recorded rate: latency and sustained rate.
+    Pipeline(BenchPipelineArgs),
+}
+
+#[derive(Args, Debug)]
+struct BenchIpcArgs {
+    /// Frame sets sent per size.
+    #[arg(long, default_value_t = 300)]
+    samples: usize,
+    /// Print one JSON array instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
+struct IpcReceiverArgs {
+    #[arg(long)]
+    services: String,
+    #[arg(long)]
+    samples: usize,
+}
+
+#[derive(Args, Debug)]
+struct BenchPipelineArgs {
+    /// Recording replayed (looped) at its recorded rate; the demo's `signer-3cam` by default
+    /// (rendered first if need be).
+    #[arg(long)]
+    recording: Option<PathBuf>,
+    /// Seconds measured after a 3 s warm-up.
+    #[arg(long, default_value_t = 20.0)]
+    seconds: f64,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args, Debug)]
@@ -361,11 +400,87 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(BenchCommand::Accuracy(args))) => bench_accuracy(&args),
         Some(Command::Bench(BenchCommand::Render(args))) => bench_render(&args),
         Some(Command::Bench(BenchCommand::Cluster(args))) => bench_cluster(&args),
+        Some(Command::Bench(BenchCommand::Ipc(args))) => bench_ipc(&args),
+        Some(Command::Bench(BenchCommand::IpcReceiver(args))) => {
+            crate::stream_bench::ipc_receiver(&args.services, args.samples)
+        }
+        Some(Command::Bench(BenchCommand::Pipeline(args))) => bench_pipeline(&args),
         Some(Command::Render(args)) => render(&args),
         Some(Command::Track(args)) => track(&args),
         Some(Command::Overlay(args)) => overlay(&args),
         Some(Command::Eval(EvalCommand::Tracks(args))) => eval_tracks(&args),
     }
+}
+
+fn bench_ipc(args: &BenchIpcArgs) -> Result<()> {
+    let results = crate::stream_bench::bench_ipc(args.samples)?;
+    if args.json {
+        out!("{}", serde_json::to_string(&results)?);
+        return Ok(());
+    }
+    out!("one hop through iceoryx2 (publisher -> subscriber in another process, woken by its WaitSet)");
+    out!("against copying the same bytes once; {} frame sets per size", args.samples);
+    out!(
+        "{:>6} {:>10} {:>12} {:>12} {:>12} {:>10}",
+        "views",
+        "MB",
+        "hop p50 us",
+        "hop p99 us",
+        "copy p50 us",
+        "copy/hop"
+    );
+    for r in &results {
+        out!(
+            "{:>6} {:>10.2} {:>12.1} {:>12.1} {:>12.1} {:>10.2}",
+            r.views,
+            r.bytes as f64 / 1e6,
+            r.hop_p50_us,
+            r.hop_p99_us,
+            r.copy_p50_us,
+            r.copy_over_hop
+        );
+    }
+    Ok(())
+}
+
+/// The demo's recording, rendered first if it is not there yet.
+fn demo_recording() -> Result<PathBuf> {
+    let rec = PathBuf::from(DEMO_RECORDING);
+    if !rec.join("frames.csv").is_file() {
+        out!("rendering the built-in `signer-3cam` scene into {} first", rec.display());
+        let spec = scene_spec(None, Some("signer-3cam"))?;
+        let renderer = Renderer::new(&spec).map_err(anyhow::Error::msg)?;
+        clear_output(&rec, true)?;
+        write_recording(&renderer, &rec, spec.frames)?;
+    }
+    Ok(rec)
+}
+
+fn bench_pipeline(args: &BenchPipelineArgs) -> Result<()> {
+    let rec = match &args.recording {
+        Some(r) => r.clone(),
+        None => demo_recording()?,
+    };
+    let r = crate::stream_bench::bench_pipeline(&rec, args.seconds)?;
+    if args.json {
+        out!("{}", serde_json::to_string(&r)?);
+        return Ok(());
+    }
+    out!(
+        "live pipeline on `{}` at {:.0} frames/s, {:.1} s measured: {:.1} trajectory samples/s, {} frame sets dropped",
+        r.recording,
+        r.input_fps,
+        r.seconds,
+        r.output_fps,
+        r.dropped
+    );
+    out!(
+        "glass-to-trajectory latency p50 {:.1} ms, p99 {:.1} ms ({:.1} ms beyond the one-frame forwards/backwards delay)",
+        r.latency_p50_ms,
+        r.latency_p99_ms,
+        r.latency_p99_beyond_fb_ms
+    );
+    Ok(())
 }
 
 /// Where the demo renders its recording and writes its trajectories.
@@ -408,14 +523,7 @@ fn run_streaming(args: &RunArgs) -> Result<()> {
     }
     let demo = p.recording.is_none() && p.preset.is_none();
     if demo {
-        let rec = PathBuf::from(DEMO_RECORDING);
-        if !rec.join("frames.csv").is_file() {
-            out!("handflow demo: rendering the built-in `signer-3cam` scene into {} first", rec.display());
-            let spec = scene_spec(None, Some("signer-3cam"))?;
-            let renderer = Renderer::new(&spec).map_err(anyhow::Error::msg)?;
-            clear_output(&rec, true)?;
-            write_recording(&renderer, &rec, spec.frames)?;
-        }
+        let rec = demo_recording()?;
         p.recording = Some(rec);
         if p.out.is_none() {
             p.out = Some(PathBuf::from(DEMO_TRAJECTORIES));

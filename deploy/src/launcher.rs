@@ -16,7 +16,7 @@
 //! max_restarts = 5                 # per stage, before the run gives up
 //! ```
 //!
-//! A run that is not looped ends when the publisher has published the end of the stream
+//! A run that is not looped (or has a fixed number of frames) ends when the publisher has published the end of the stream
 //! (every frame through every stage); the launcher then stops the other stages and returns.
 
 use std::path::{Path, PathBuf};
@@ -110,9 +110,9 @@ impl Pipeline {
         Ok(())
     }
 
-    /// Whether the run ends by itself.
+    /// Whether the run ends by itself (not looped, or a fixed number of frame sets).
     pub fn ends(&self) -> bool {
-        !self.looped
+        !self.looped || self.frames.is_some()
     }
 }
 

@@ -12,6 +12,7 @@ pub mod middlebury;
 pub mod overlay;
 pub mod recording_flow;
 pub mod skin_eval;
+pub mod stream_bench;
 pub mod tap;
 pub mod track;
 pub mod track_eval;

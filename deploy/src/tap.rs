@@ -23,7 +23,7 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
     };
     match suffix {
         "rig" => {
-            let input = ipc::tap_rig(&node, &name)?;
+            let input = open_when_ready(&node, &name, ipc::tap_rig)?;
             ipc::serve(&input, idle, |s| {
                 let h = *s.user_header();
                 let check = h.validate(s.payload().len()).map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
@@ -34,7 +34,7 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
             })
         }
         "frames" => {
-            let input = ipc::tap_frames(&node, &name)?;
+            let input = open_when_ready(&node, &name, ipc::tap_frames)?;
             ipc::serve(&input, idle, |s| {
                 let h = *s.user_header();
                 let check = h.validate(s.payload().len()).map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
@@ -49,7 +49,7 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
             })
         }
         "particles" => {
-            let input = ipc::tap_particles(&node, &name)?;
+            let input = open_when_ready(&node, &name, ipc::tap_particles)?;
             ipc::serve(&input, idle, |s| {
                 let h = *s.user_header();
                 let check = h.validate(s.payload().len()).map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
@@ -69,7 +69,7 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
             })
         }
         "clusters" => {
-            let input = ipc::tap_clusters(&node, &name)?;
+            let input = open_when_ready(&node, &name, ipc::tap_clusters)?;
             ipc::serve(&input, idle, |s| {
                 let c = *s.payload();
                 let check = c.validate().map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
@@ -85,7 +85,7 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
             })
         }
         "trajectories" => {
-            let input = ipc::tap_trajectories(&node, &name)?;
+            let input = open_when_ready(&node, &name, ipc::tap_trajectories)?;
             ipc::serve(&input, idle, |s| {
                 let t = *s.payload();
                 let check = t.validate().map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
@@ -106,6 +106,28 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
             })
         }
         other => bail!("unknown service `{other}` (services: {})", SERVICE_SUFFIXES.join(", ")),
+    }
+}
+
+/// Opens the service, waiting for the pipeline to create it.
+fn open_when_ready<T>(
+    node: &ipc::IpcNode,
+    name: &str,
+    open: impl Fn(&ipc::IpcNode, &str) -> Result<T, ipc::IpcError>,
+) -> Result<T> {
+    let mut announced = false;
+    loop {
+        match open(node, name) {
+            Ok(input) => return Ok(input),
+            Err(e) if !announced => {
+                eprintln!("waiting for `{name}` ({})", e.what);
+                announced = true;
+            }
+            Err(_) => {}
+        }
+        if node.wait(Duration::from_millis(100)).is_err() {
+            bail!("interrupted before `{name}` appeared");
+        }
     }
 }
 

@@ -68,7 +68,8 @@ fn run(args: Args) -> Result<()> {
     let mut stream: FlowStream<FrameMeta> = match args.mode {
         Mode::Replay => FlowStream::new(engine),
         // Live: after the warm-up, go on from the newest frames rather than catch up.
-        Mode::Live => FlowStream::new(engine).with_backlog_limit(3),
+        // and never wait for the face detector.
+        Mode::Live => FlowStream::new(engine).with_backlog_limit(3).without_waiting_for_models(),
     };
     let mut connected = false;
     let mut last_sequence: Option<u64> = None;

@@ -101,6 +101,16 @@ impl FaceWorker {
         self.frames.as_ref().and_then(|tx| tx.send(frame_set).ok()).ok_or(StreamError::FaceWorker)
     }
 
+    /// The next models if they are ready.
+    fn try_recv(&self) -> Result<Option<Vec<SkinModel>>, StreamError> {
+        match self.models.try_recv() {
+            Ok(Ok(models)) => Ok(Some(models)),
+            Ok(Err(e)) => Err(StreamError::FaceDetector(e)),
+            Err(std::sync::mpsc::TryRecvError::Empty) => Ok(None),
+            Err(std::sync::mpsc::TryRecvError::Disconnected) => Err(StreamError::FaceWorker),
+        }
+    }
+
     fn recv(&self) -> Result<Vec<SkinModel>, StreamError> {
         match self.models.recv() {
             Ok(Ok(models)) => Ok(models),
@@ -174,6 +184,9 @@ pub struct FlowStream<M> {
     /// Of the frames held for the warm-up, only the newest this many are estimated (live
     /// streams: the older ones are stale by then).
     backlog_limit: Option<usize>,
+    /// Whether a frame waits for models that are due but not ready (the fixed schedule that
+    /// makes a replay repeatable), or goes on with the current ones (live streams).
+    wait_for_models: bool,
 }
 
 /// Frames the warm-up looks at last: frame `(WARM_UP_ROUNDS - 1) * DEFAULT_DETECT_EVERY`.
@@ -193,6 +206,7 @@ impl<M> FlowStream<M> {
             pending_models: VecDeque::new(),
             waiting: VecDeque::new(),
             backlog_limit: None,
+            wait_for_models: true,
         }
     }
 
@@ -201,6 +215,15 @@ impl<M> FlowStream<M> {
     /// where catching up on stale frames only adds latency.
     pub fn with_backlog_limit(mut self, frames: usize) -> Self {
         self.backlog_limit = Some(frames.max(2));
+        self
+    }
+
+    /// Never waits for the face detector: adapted models are applied at the first frame
+    /// after they are both due and ready, and a new detection starts only when the last one
+    /// has finished. For live streams, where a frame must not wait for a detector that is
+    /// slower than the schedule (the estimates then depend on timing).
+    pub fn without_waiting_for_models(mut self) -> Self {
+        self.wait_for_models = false;
         self
     }
 
@@ -280,14 +303,16 @@ impl<M> FlowStream<M> {
         on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), StreamError>,
     ) -> Result<(), StreamError> {
         let k = self.pushed;
-        if k % DEFAULT_DETECT_EVERY == 0 {
+        if k % DEFAULT_DETECT_EVERY == 0 && (self.wait_for_models || self.pending_models.is_empty()) {
             self.faces.send(frame_set.to_vec())?;
             self.pending_models.push_back(k + MODEL_LAG);
         }
-        if self.pending_models.front() == Some(&k) {
-            self.pending_models.pop_front();
-            let models = self.faces.recv()?;
-            self.engine.set_skin_models(&models)?;
+        if self.pending_models.front().is_some_and(|&due| due <= k) {
+            let models = if self.wait_for_models { Some(self.faces.recv()?) } else { self.faces.try_recv()? };
+            if let Some(models) = models {
+                self.pending_models.pop_front();
+                self.engine.set_skin_models(&models)?;
+            }
         }
         let views = split_views(self.engine.cameras(), frame_set);
         self.waiting.push_back((k, meta));
