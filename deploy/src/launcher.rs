@@ -340,4 +340,18 @@ mod tests {
         std::fs::write(&path, "mode = \"replay\"\n").unwrap();
         assert!(format!("{:#}", Pipeline::load(&path).unwrap_err()).contains("no source"));
     }
+
+    #[test]
+    fn the_example_pipeline_files_are_valid() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines");
+        let mut seen = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                Pipeline::load(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+                seen += 1;
+            }
+        }
+        assert!(seen >= 2);
+    }
 }
