@@ -175,6 +175,28 @@ pub fn create_node(stage: &str) -> Result<Node<Ipc>, IpcError> {
         .map_err(|e| IpcError::new(stage, format!("creating the node: {e:?}")))
 }
 
+/// The node of a stage process: created, then what dead processes left in shared memory
+/// removed (a restarted stage must not find its predecessor's ports in the way).
+pub fn stage_node(stage: &str) -> Result<IpcNode, IpcError> {
+    let node = create_node(stage)?;
+    let cleaned = cleanup_dead_nodes(&node);
+    if cleaned > 0 {
+        tracing::info!("cleaned up {cleaned} dead node(s)");
+    }
+    Ok(node)
+}
+
+/// Ends a stage process: status 0, or the error logged (with its causes) and status 1.
+pub fn exit_with<E: fmt::Display>(result: Result<(), E>) -> ! {
+    match result {
+        Ok(()) => std::process::exit(0),
+        Err(e) => {
+            tracing::error!("{e:#}");
+            std::process::exit(1)
+        }
+    }
+}
+
 /// Removes what dead processes left in shared memory (their ports stay registered, and a
 /// lossless publisher would wait on a dead subscriber forever). Returns how many dead
 /// nodes were cleaned.

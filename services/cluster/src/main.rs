@@ -28,19 +28,12 @@ struct Args {
 
 fn main() {
     ipc::init_logging();
-    if let Err(e) = run(Args::parse()) {
-        tracing::error!("{e:#}");
-        std::process::exit(1);
-    }
+    ipc::exit_with(run(Args::parse()))
 }
 
 fn run(args: Args) -> Result<()> {
     let names = ServiceNames::new(&args.services);
-    let node = ipc::create_node("handflow-cluster")?;
-    let cleaned = ipc::cleanup_dead_nodes(&node);
-    if cleaned > 0 {
-        tracing::info!("cleaned up {cleaned} dead node(s)");
-    }
+    let node = ipc::stage_node("handflow-cluster")?;
     let Some((_, rig)) = ipc::wait_for_rig(&node, &names)? else { return Ok(()) };
     let reference = rig.most_frontal_camera();
     let particles = ipc::particles_input(&node, &names, args.mode)?;

@@ -37,21 +37,13 @@ struct FrameMeta {
 
 fn main() {
     ipc::init_logging();
-    if let Err(e) = run(Args::parse()) {
-        tracing::error!("{e:#}");
-        std::process::exit(1);
-    }
+    ipc::exit_with(run(Args::parse()))
 }
 
 fn run(args: Args) -> Result<()> {
     let variant: Variant = args.variant.parse().map_err(anyhow::Error::msg)?;
     let names = ServiceNames::new(&args.services);
-    let node = ipc::create_node("handflow-flow")?;
-    // Dead stages of an earlier run would keep a lossless publisher waiting.
-    let cleaned = ipc::cleanup_dead_nodes(&node);
-    if cleaned > 0 {
-        tracing::info!("cleaned up {cleaned} dead node(s)");
-    }
+    let node = ipc::stage_node("handflow-flow")?;
     let Some((rig_header, rig)) = ipc::wait_for_rig(&node, &names)? else { return Ok(()) };
     let fps = rig_header.frame_rate_hz;
     let reference = rig.most_frontal_camera();
@@ -123,6 +115,11 @@ fn run(args: Args) -> Result<()> {
             tracing::info!("end of stream after frame set {}; {dropped} frame set(s) dropped", header.sequence);
             last_sequence = None;
             return Ok(Next::Continue);
+        }
+        if last_sequence.is_none() && header.sequence > 0 {
+            // A stream joined part-way (this stage restarted): start estimating at once.
+            tracing::info!("joining the stream at frame set {}", header.sequence);
+            stream.joining_mid_stream();
         }
         last_sequence = Some(header.sequence);
         let meta = FrameMeta {

@@ -184,9 +184,13 @@ pub struct FlowStream<M> {
     /// Of the frames held for the warm-up, only the newest this many are estimated (live
     /// streams: the older ones are stale by then).
     backlog_limit: Option<usize>,
+    /// Frames held before the warm-up runs.
+    warm_up_frames: u64,
     /// Whether a frame waits for models that are due but not ready (the fixed schedule that
     /// makes a replay repeatable), or goes on with the current ones (live streams).
     wait_for_models: bool,
+    /// What `wait_for_models` is at the start of each stream.
+    waits_by_default: bool,
 }
 
 /// Frames the warm-up looks at last: frame `(WARM_UP_ROUNDS - 1) * DEFAULT_DETECT_EVERY`.
@@ -206,7 +210,9 @@ impl<M> FlowStream<M> {
             pending_models: VecDeque::new(),
             waiting: VecDeque::new(),
             backlog_limit: None,
+            warm_up_frames: LAST_WARM_UP_FRAME + 1,
             wait_for_models: true,
+            waits_by_default: true,
         }
     }
 
@@ -218,12 +224,21 @@ impl<M> FlowStream<M> {
         self
     }
 
+    /// For a stream joined part-way through (a restarted stage): nothing is held and
+    /// nothing waits for the face detector, so estimates start two frames later; the skin
+    /// models start generic and adapt as detections finish.
+    pub fn joining_mid_stream(&mut self) {
+        self.warm_up_frames = 0;
+        self.wait_for_models = false;
+    }
+
     /// Never waits for the face detector: adapted models are applied at the first frame
     /// after they are both due and ready, and a new detection starts only when the last one
     /// has finished. For live streams, where a frame must not wait for a detector that is
     /// slower than the schedule (the estimates then depend on timing).
     pub fn without_waiting_for_models(mut self) -> Self {
         self.wait_for_models = false;
+        self.waits_by_default = false;
         self
     }
 
@@ -246,7 +261,7 @@ impl<M> FlowStream<M> {
         if let Some(held) = self.held.as_mut() {
             // Copies only the first frames of a stream, once.
             held.push((meta, frame_set.to_vec()));
-            if held.len() as u64 > LAST_WARM_UP_FRAME {
+            if held.len() as u64 >= self.warm_up_frames {
                 self.release_held(&mut on_estimate)?;
             }
             return Ok(());
@@ -268,6 +283,8 @@ impl<M> FlowStream<M> {
         }
         self.engine.reset();
         self.held = Some(Vec::new());
+        self.warm_up_frames = LAST_WARM_UP_FRAME + 1;
+        self.wait_for_models = self.waits_by_default;
         self.pushed = 0;
         self.pending_models.clear();
         self.waiting.clear();
@@ -283,7 +300,8 @@ impl<M> FlowStream<M> {
         if held.is_empty() {
             return Ok(());
         }
-        for k in 0..WARM_UP_ROUNDS.min(held.len()) {
+        let rounds = if self.warm_up_frames == 0 { 0 } else { WARM_UP_ROUNDS.min(held.len()) };
+        for k in 0..rounds {
             let index = (k as u64 * DEFAULT_DETECT_EVERY) as usize % held.len();
             self.faces.send(held[index].1.clone())?;
             let models = self.faces.recv()?;

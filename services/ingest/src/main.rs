@@ -93,10 +93,7 @@ impl Source {
 
 fn main() {
     ipc::init_logging();
-    if let Err(e) = run(Args::parse()) {
-        tracing::error!("{e:#}");
-        std::process::exit(1);
-    }
+    ipc::exit_with(run(Args::parse()))
 }
 
 fn run(args: Args) -> Result<()> {
@@ -122,7 +119,7 @@ fn run(args: Args) -> Result<()> {
         Mode::Live => Pace::Recorded,
     });
     let names = ServiceNames::new(&args.services);
-    let node = ipc::create_node("handflow-ingest")?;
+    let node = ipc::stage_node("handflow-ingest")?;
     // Kept alive: the rig's history lives as long as its publisher.
     let rig = publish_rig(&node, &names, source.rig(), source.frame_rate())?;
     let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;

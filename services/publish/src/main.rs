@@ -30,10 +30,7 @@ struct Args {
 
 fn main() {
     ipc::init_logging();
-    if let Err(e) = run(Args::parse()) {
-        tracing::error!("{e:#}");
-        std::process::exit(1);
-    }
+    ipc::exit_with(run(Args::parse()))
 }
 
 /// Glass-to-trajectory latencies, for the end-of-stream report.
@@ -50,11 +47,7 @@ impl Latencies {
 
 fn run(args: Args) -> Result<()> {
     let names = ServiceNames::new(&args.services);
-    let node = ipc::create_node("handflow-publish")?;
-    let cleaned = ipc::cleanup_dead_nodes(&node);
-    if cleaned > 0 {
-        tracing::info!("cleaned up {cleaned} dead node(s)");
-    }
+    let node = ipc::stage_node("handflow-publish")?;
     let clusters = ipc::clusters_input(&node, &names, args.mode)?;
     let trajectories = ipc::trajectories_output(&node, &names, args.mode)?;
     let mut sink = match &args.out {
