@@ -26,6 +26,10 @@ struct Args {
     services: String,
 }
 
+/// Frames between face detections in live mode: once a second at 30 frames per second
+/// instead of three times (measured on signer-3cam, 2 cores: see BENCHMARKS.md).
+const LIVE_DETECT_EVERY: u64 = 30;
+
 /// What the stage remembers of a frame until its estimate is out.
 #[derive(Clone, Copy, Debug)]
 struct FrameMeta {
@@ -61,7 +65,10 @@ fn run(args: Args) -> Result<()> {
         Mode::Replay => FlowStream::new(engine),
         // Live: after the warm-up, go on from the newest frames rather than catch up.
         // and never wait for the face detector.
-        Mode::Live => FlowStream::new(engine).with_backlog_limit(3).without_waiting_for_models(),
+        Mode::Live => FlowStream::new(engine)
+            .with_backlog_limit(3)
+            .without_waiting_for_models()
+            .with_detect_every(LIVE_DETECT_EVERY),
     };
     let mut connected = false;
     let mut last_sequence: Option<u64> = None;

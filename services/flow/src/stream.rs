@@ -191,6 +191,8 @@ pub struct FlowStream<M> {
     wait_for_models: bool,
     /// What `wait_for_models` is at the start of each stream.
     waits_by_default: bool,
+    /// Frames between face detections.
+    detect_every: u64,
 }
 
 /// Frames the warm-up looks at last: frame `(WARM_UP_ROUNDS - 1) * DEFAULT_DETECT_EVERY`.
@@ -213,6 +215,7 @@ impl<M> FlowStream<M> {
             warm_up_frames: LAST_WARM_UP_FRAME + 1,
             wait_for_models: true,
             waits_by_default: true,
+            detect_every: DEFAULT_DETECT_EVERY,
         }
     }
 
@@ -221,6 +224,14 @@ impl<M> FlowStream<M> {
     /// where catching up on stale frames only adds latency.
     pub fn with_backlog_limit(mut self, frames: usize) -> Self {
         self.backlog_limit = Some(frames.max(2));
+        self
+    }
+
+    /// Detects faces on every `frames`-th frame instead of every
+    /// [`DEFAULT_DETECT_EVERY`]-th after the warm-up (a live stream on few cores spends the
+    /// detector's time on frames instead; skin colour under steady lighting changes slowly).
+    pub fn with_detect_every(mut self, frames: u64) -> Self {
+        self.detect_every = frames.max(1);
         self
     }
 
@@ -321,7 +332,7 @@ impl<M> FlowStream<M> {
         on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), StreamError>,
     ) -> Result<(), StreamError> {
         let k = self.pushed;
-        if k % DEFAULT_DETECT_EVERY == 0 && (self.wait_for_models || self.pending_models.is_empty()) {
+        if k % self.detect_every == 0 && (self.wait_for_models || self.pending_models.is_empty()) {
             self.faces.send(frame_set.to_vec())?;
             self.pending_models.push_back(k + MODEL_LAG);
         }
