@@ -285,11 +285,27 @@ fn publisher_builder_settings<P: ?Sized + fmt::Debug + IceoryxSend, H: fmt::Debu
         Mode::Replay => builder
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
             .set_backpressure_handler(|_: &iceoryx2::port::BackpressureInfo| {
+                // A stop request must not wait for a subscriber that may never read again.
+                if stop_requested() {
+                    return BackpressureAction::DiscardData;
+                }
                 std::thread::sleep(BACKPRESSURE_SLEEP);
                 BackpressureAction::Retry
             }),
         Mode::Live => builder.backpressure_strategy(BackpressureStrategy::DiscardData),
     }
+}
+
+static STOP_REQUESTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Whether SIGINT or SIGTERM has arrived. iceoryx2 hands a signal out once; this remembers
+/// it, so that a publisher waiting on a full buffer and the stage's loop both see it.
+pub fn stop_requested() -> bool {
+    use std::sync::atomic::Ordering;
+    if iceoryx2_bb_posix::signal::SignalHandler::termination_requested() {
+        STOP_REQUESTED.store(true, Ordering::Relaxed);
+    }
+    STOP_REQUESTED.load(Ordering::Relaxed)
 }
 
 /// Settings of one service.
@@ -591,6 +607,9 @@ pub fn serve<I: Receive, E: From<IpcError>>(
         .map_err(|e| IpcError::new(&name, format!("attaching to the WaitSet: {e:?}")))?;
     let mut result = Ok(());
     let mut on_event = |_: WaitSetAttachmentId<Ipc>| {
+        if STOP_REQUESTED.load(std::sync::atomic::Ordering::Relaxed) {
+            return CallbackProgression::Stop;
+        }
         let _ = input.wake_listener().try_wait(|_| {});
         loop {
             match input.receive_one() {

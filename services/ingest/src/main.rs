@@ -159,6 +159,9 @@ fn run(args: Args) -> Result<()> {
     let interval = Duration::from_secs_f64(1.0 / source.frame_rate());
     let started = Instant::now();
     for sequence in 0..total {
+        if ipc::stop_requested() {
+            return Ok(());
+        }
         if pace == Pace::Recorded {
             let due = interval.saturating_mul(sequence.min(u64::from(u32::MAX)) as u32);
             if let Some(wait) = due.checked_sub(started.elapsed()) {
