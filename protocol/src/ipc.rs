@@ -313,18 +313,22 @@ pub fn stop_requested() -> bool {
 struct Settings {
     max_subscribers: usize,
     buffer: usize,
+    /// A live subscriber's buffer: the newest this many samples are kept.
+    live_buffer: usize,
     borrowed: usize,
     history: usize,
 }
 
 /// Frame sets are large (2.8 MB for three VGA views): few subscribers, small buffers.
-const FRAMES: Settings = Settings { max_subscribers: 4, buffer: 4, borrowed: 4, history: 0 };
+/// Live, two frame sets wait: one estimate slower than a frame interval then delays the next
+/// frame instead of dropping it.
+const FRAMES: Settings = Settings { max_subscribers: 4, buffer: 4, live_buffer: 2, borrowed: 4, history: 0 };
 /// Particle sets.
-const PARTICLES: Settings = Settings { max_subscribers: 4, buffer: 4, borrowed: 2, history: 0 };
+const PARTICLES: Settings = Settings { max_subscribers: 4, buffer: 4, live_buffer: 1, borrowed: 2, history: 0 };
 /// Labelled clusters (small).
-const CLUSTERS: Settings = Settings { max_subscribers: 8, buffer: 16, borrowed: 2, history: 0 };
+const CLUSTERS: Settings = Settings { max_subscribers: 8, buffer: 16, live_buffer: 1, borrowed: 2, history: 0 };
 /// Trajectory samples: any number of recognisers and viewers.
-const TRAJECTORIES: Settings = Settings { max_subscribers: 32, buffer: 64, borrowed: 4, history: 0 };
+const TRAJECTORIES: Settings = Settings { max_subscribers: 32, buffer: 64, live_buffer: 8, borrowed: 4, history: 0 };
 
 macro_rules! open_service {
     ($node:expr, $name:expr, $payload:ty, $header:ty, $settings:expr, $safe_overflow:expr) => {{
@@ -390,7 +394,7 @@ fn input<P: ?Sized + fmt::Debug + IceoryxSend, H: fmt::Debug + ZeroCopySend>(
 fn buffer_for(mode: Mode, settings: Settings) -> usize {
     match mode {
         Mode::Replay => settings.buffer,
-        Mode::Live => 1,
+        Mode::Live => settings.live_buffer,
     }
 }
 
@@ -415,7 +419,7 @@ pub fn rig_input(node: &Node<Ipc>, names: &ServiceNames) -> Result<Input<[u8], R
 
 fn rig_service(node: &Node<Ipc>, name: &str) -> Result<PortFactory<Ipc, [u8], RigHeader>, IpcError> {
     // The rig is state, not a stream: latest wins in every mode.
-    let settings = Settings { max_subscribers: 32, buffer: 1, borrowed: 1, history: 1 };
+    let settings = Settings { max_subscribers: 32, buffer: 1, live_buffer: 1, borrowed: 1, history: 1 };
     Ok(open_service!(node, name, [u8], RigHeader, settings, true))
 }
 
@@ -507,11 +511,7 @@ pub fn trajectories_input(
     let name = names.trajectories();
     let service = open_service!(node, &name, TrajectorySample, (), TRAJECTORIES, mode.safe_overflow());
     // Live subscribers keep a few samples: a recogniser wants the recent track, not one point.
-    let buffer = match mode {
-        Mode::Replay => TRAJECTORIES.buffer,
-        Mode::Live => 8,
-    };
-    input(node, name, &service, buffer)
+    input(node, name, &service, buffer_for(mode, TRAJECTORIES))
 }
 
 macro_rules! tap_input {
