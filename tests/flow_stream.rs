@@ -5,7 +5,7 @@
 #![allow(clippy::unwrap_used)]
 
 use handflow_e2e::render_preset;
-use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FlowStream};
+use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FlowStream, StreamError};
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_ingest::Recording;
 
@@ -28,7 +28,7 @@ fn estimated_frames(configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>, 
         assert!(!points.is_empty(), "frame {k} has particles on the skin");
         assert!(points.iter().all(|p| p.weight >= 0.0 && (0.0..=1.0).contains(&p.skin)));
         seen.push(k);
-        Ok(())
+        Ok::<(), StreamError>(())
     };
     for k in first..u64::from(FRAMES) {
         rec.read_frame_into(k, false, &mut buf).unwrap();

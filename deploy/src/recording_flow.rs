@@ -30,11 +30,6 @@ pub fn recording_engine_config(
     Ok(config)
 }
 
-/// Frame rate of a recording from its timestamps (30 when it has fewer than two frames).
-pub fn recording_fps(rec: &Recording) -> f64 {
-    rec.frame_rate()
-}
-
 /// What `handflow bench flow --recording` measured.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct RecordingFlowReport {
@@ -91,7 +86,7 @@ pub fn bench_recording(
 ) -> Result<RecordingFlowReport> {
     let rec = Recording::open(dir)?;
     let rig = rec.rig().clone();
-    let config = recording_engine_config(variant, particles_per_ray, recording_fps(&rec), overrides)?;
+    let config = recording_engine_config(variant, particles_per_ray, rec.frame_rate(), overrides)?;
     let reference = rig.most_frontal_camera();
     let skin_weight = config.skin_weight;
     let mut engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
@@ -174,7 +169,7 @@ fn dense_seconds_per_frame(rec: &Recording, reference: usize, buf: &mut [u8]) ->
     let config = EngineConfig {
         temporal: Temporal::ForwardsBackwards,
         depth_range: STREAM_DEPTH_RANGE_M,
-        speed_bound: STREAM_SPEED_BOUND_M_S / recording_fps(rec).max(1.0) as f32,
+        speed_bound: STREAM_SPEED_BOUND_M_S / rec.frame_rate().max(1.0) as f32,
         ..EngineConfig::default()
     };
     let mut engine = SceneFlowEngine::new(config, rec.rig().cameras.clone(), reference)?;

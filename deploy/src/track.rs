@@ -114,30 +114,13 @@ pub fn track_recording(
                 }
             }
         });
-        let mut failure = None;
         for k in 0..frames {
             let buf = frame_rx.recv().context("the decoding thread stopped")??;
-            let pushed = flow.push(k, &buf, |k, engine| {
-                on_estimate(k, engine).map_err(|e| {
-                    failure = Some(e);
-                    handflow_flow::stream::StreamError::Stopped
-                })
-            });
+            let pushed = flow.push(k, &buf, &mut on_estimate);
             let _ = spare_tx.send(buf);
-            if let Some(e) = failure.take() {
-                return Err(e);
-            }
             pushed.with_context(|| format!("frame {k}"))?;
         }
-        let finished = flow.finish(|k, engine| {
-            on_estimate(k, engine).map_err(|e| {
-                failure = Some(e);
-                handflow_flow::stream::StreamError::Stopped
-            })
-        });
-        if let Some(e) = failure.take() {
-            return Err(e);
-        }
+        let finished = flow.finish(&mut on_estimate);
         finished.context("end of the recording")?;
         Ok(())
     })?;

@@ -238,6 +238,17 @@ impl<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug + ZeroCopySen
         true
     }
 
+    /// Before a stage's first message: in replay mode, waits (logging that it does) until
+    /// the next stage subscribes, so nothing is lost; in live mode, connects to whoever is
+    /// there.
+    pub fn connect_downstream(&self, node: &Node<Ipc>, mode: Mode) {
+        let needed = usize::from(mode == Mode::Replay);
+        if self.subscribers() < needed {
+            tracing::info!("waiting for a subscriber on `{}`", self.name);
+        }
+        self.wait_for_subscribers(node, needed, Duration::MAX);
+    }
+
     /// Connects to subscribers that arrived since the last send and hands them the
     /// history (iceoryx2 delivers history when the publisher notices a subscriber, so a
     /// publisher that sends rarely, like the rig's, calls this while it waits).
@@ -261,11 +272,6 @@ pub struct Input<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug +
 }
 
 impl<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug + ZeroCopySend + 'static> Input<P, H> {
-    /// Consumes pending wake-ups (the samples are read with `subscriber.receive()`).
-    pub fn clear_events(&self) {
-        let _ = self.listener.try_wait(|_| {});
-    }
-
     /// The service's name.
     pub fn name(&self) -> &str {
         &self.name

@@ -331,12 +331,12 @@ pub struct ClusterSet {
     pub objects: [LabelledCluster; 3],
 }
 
-fn validate_objects<const N: usize>(
+fn validate_objects(
     kind: &'static str,
     sequence: u64,
     objects: impl Iterator<Item = ([f64; 3], [f64; 3], f64, u32)>,
 ) -> Result<(), MessageError> {
-    for (label, (position, velocity, confidence, state)) in OBJECT_LABELS.iter().zip(objects).take(N) {
+    for (label, (position, velocity, confidence, state)) in OBJECT_LABELS.iter().zip(objects) {
         if !position.iter().chain(&velocity).all(|v| v.is_finite()) {
             return Err(field_error(kind, sequence, "objects", format!("{label}: a non-finite position or velocity")));
         }
@@ -363,7 +363,7 @@ impl ClusterSet {
         if self.is_end_of_stream() {
             return Ok(());
         }
-        validate_objects::<3>(
+        validate_objects(
             KIND,
             self.sequence,
             self.objects.iter().map(|o| (o.position, o.velocity, o.confidence, o.state)),
@@ -427,7 +427,7 @@ impl TrajectorySample {
         if self.is_end_of_stream() {
             return Ok(());
         }
-        validate_objects::<3>(
+        validate_objects(
             KIND,
             self.sequence,
             self.objects.iter().map(|o| (o.position, o.velocity, o.confidence, o.state)),

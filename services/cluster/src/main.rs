@@ -57,11 +57,7 @@ fn run(args: Args) -> Result<()> {
             return Ok(Next::Continue);
         }
         if !connected {
-            let needed = usize::from(args.mode == Mode::Replay);
-            if needed > clusters.subscribers() {
-                tracing::info!("waiting for a subscriber on `{}`", clusters.name());
-            }
-            clusters.wait_for_subscribers(&node, needed, Duration::MAX);
+            clusters.connect_downstream(&node, args.mode);
             connected = true;
         }
         let mut set = ClusterSet {

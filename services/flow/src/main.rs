@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FlowStream, StreamError};
+use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FlowStream};
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_protocol::ipc::{self, Mode, Next, Output, ServiceNames};
 use handflow_protocol::messages::{ParticleHeader, ScenePoint, END_OF_STREAM, PROTOCOL_VERSION};
@@ -73,7 +73,6 @@ fn run(args: Args) -> Result<()> {
     let mut connected = false;
     let mut last_sequence: Option<u64> = None;
     let mut dropped = 0u64;
-    let mut failure: Option<anyhow::Error> = None;
     ipc::serve(&frames, Duration::from_millis(100), |sample| -> Result<Next> {
         let header = *sample.user_header();
         if let Err(e) = header.validate(sample.payload().len()) {
@@ -93,14 +92,11 @@ fn run(args: Args) -> Result<()> {
             return Ok(Next::Continue);
         }
         if !connected {
-            connect(&node, &particles, args.mode);
+            particles.connect_downstream(&node, args.mode);
             connected = true;
         }
-        let mut publish = |meta: FrameMeta, engine: &SceneFlowEngine| -> Result<(), StreamError> {
-            send_particles(&particles, &meta, engine, fps, rig_header.rig_version, reference as u32).map_err(|e| {
-                failure = Some(e);
-                StreamError::Stopped
-            })
+        let mut publish = |meta: FrameMeta, engine: &SceneFlowEngine| {
+            send_particles(&particles, &meta, engine, fps, rig_header.rig_version, reference as u32)
         };
         if let Some(last) = last_sequence {
             if header.sequence > last + 1 {
@@ -113,11 +109,7 @@ fn run(args: Args) -> Result<()> {
             }
         }
         if header.is_end_of_stream() {
-            let finished = stream.finish(&mut publish);
-            if let Some(e) = failure.take() {
-                return Err(e);
-            }
-            finished.context("end of stream")?;
+            stream.finish(&mut publish).context("end of stream")?;
             send_end_of_stream(&particles, header.sequence)?;
             tracing::info!("end of stream after frame set {}; {dropped} frame set(s) dropped", header.sequence);
             last_sequence = None;
@@ -137,30 +129,11 @@ fn run(args: Args) -> Result<()> {
         };
         let pushed = stream.push(meta, sample.payload(), &mut publish);
         drop(sample);
-        if let Some(e) = failure.take() {
-            return Err(e);
-        }
         pushed.with_context(|| format!("frame set {}", header.sequence))?;
         Ok(Next::Continue)
     })?;
     tracing::info!("stopped");
     Ok(())
-}
-
-/// Replay loses nothing: wait until the cluster stage listens before sending anything.
-fn connect<
-    P: ?Sized + std::fmt::Debug + iceoryx2::prelude::IceoryxSend,
-    H: std::fmt::Debug + iceoryx2::prelude::ZeroCopySend,
->(
-    node: &ipc::IpcNode,
-    out: &Output<P, H>,
-    mode: Mode,
-) {
-    if mode == Mode::Replay && out.subscribers() == 0 {
-        tracing::info!("waiting for a subscriber on `{}`", out.name());
-    }
-    let needed = usize::from(mode == Mode::Replay);
-    out.wait_for_subscribers(node, needed, Duration::MAX);
 }
 
 /// Writes the estimate's particles straight into a loaned sample and sends it.

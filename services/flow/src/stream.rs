@@ -154,9 +154,6 @@ pub enum StreamError {
     /// The face detection thread stopped.
     #[error("the face detection thread stopped")]
     FaceWorker,
-    /// The caller's estimate handler asked to stop.
-    #[error("stopped by the estimate handler")]
-    Stopped,
     /// A frame set's length does not fit the rig.
     #[error("frame set of {got} bytes, the rig's cameras need {expected}")]
     FrameSetLength {
@@ -259,15 +256,16 @@ impl<M> FlowStream<M> {
     }
 
     /// Adds the next frame set (every view's RGB8 bytes in rig order) and hands each
-    /// estimate it completes to `on_estimate` with its frame's metadata.
-    pub fn push(
+    /// estimate it completes to `on_estimate` with its frame's metadata. The handler's own
+    /// error type passes through; the stream's errors convert into it.
+    pub fn push<E: From<StreamError>>(
         &mut self,
         meta: M,
         frame_set: &[u8],
-        mut on_estimate: impl FnMut(M, &SceneFlowEngine) -> Result<(), StreamError>,
-    ) -> Result<(), StreamError> {
+        mut on_estimate: impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+    ) -> Result<(), E> {
         if frame_set.len() != self.frame_set_len {
-            return Err(StreamError::FrameSetLength { expected: self.frame_set_len, got: frame_set.len() });
+            return Err(StreamError::FrameSetLength { expected: self.frame_set_len, got: frame_set.len() }.into());
         }
         if let Some(held) = self.held.as_mut() {
             // Copies only the first frames of a stream, once.
@@ -282,10 +280,10 @@ impl<M> FlowStream<M> {
 
     /// Ends the stream: estimates what is left (the last frame with the two-frame
     /// likelihood) and makes the stream ready for a new, unrelated one.
-    pub fn finish(
+    pub fn finish<E: From<StreamError>>(
         &mut self,
-        mut on_estimate: impl FnMut(M, &SceneFlowEngine) -> Result<(), StreamError>,
-    ) -> Result<(), StreamError> {
+        mut on_estimate: impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+    ) -> Result<(), E> {
         if self.held.as_ref().is_some_and(|h| !h.is_empty()) {
             self.release_held(&mut on_estimate)?;
         }
@@ -303,10 +301,10 @@ impl<M> FlowStream<M> {
     }
 
     /// Runs the warm-up on the held frames, then pushes them.
-    fn release_held(
+    fn release_held<E: From<StreamError>>(
         &mut self,
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), StreamError>,
-    ) -> Result<(), StreamError> {
+        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+    ) -> Result<(), E> {
         let held = self.held.take().unwrap_or_default();
         if held.is_empty() {
             return Ok(());
@@ -316,7 +314,7 @@ impl<M> FlowStream<M> {
             let index = (k as u64 * DEFAULT_DETECT_EVERY) as usize % held.len();
             self.faces.send(held[index].1.clone())?;
             let models = self.faces.recv()?;
-            self.engine.set_skin_models(&models)?;
+            self.engine.set_skin_models(&models).map_err(StreamError::from)?;
         }
         let skip = self.backlog_limit.map_or(0, |keep| held.len().saturating_sub(keep));
         for (meta, frame_set) in held.into_iter().skip(skip) {
@@ -325,12 +323,12 @@ impl<M> FlowStream<M> {
         Ok(())
     }
 
-    fn push_now(
+    fn push_now<E: From<StreamError>>(
         &mut self,
         meta: M,
         frame_set: &[u8],
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), StreamError>,
-    ) -> Result<(), StreamError> {
+        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+    ) -> Result<(), E> {
         let k = self.pushed;
         if k % self.detect_every == 0 && (self.wait_for_models || self.pending_models.is_empty()) {
             self.faces.send(frame_set.to_vec())?;
@@ -340,13 +338,13 @@ impl<M> FlowStream<M> {
             let models = if self.wait_for_models { Some(self.faces.recv()?) } else { self.faces.try_recv()? };
             if let Some(models) = models {
                 self.pending_models.pop_front();
-                self.engine.set_skin_models(&models)?;
+                self.engine.set_skin_models(&models).map_err(StreamError::from)?;
             }
         }
         let views = split_views(self.engine.cameras(), frame_set);
         self.waiting.push_back((k, meta));
         self.pushed += 1;
-        if self.engine.push_frame(&views)?.is_some() {
+        if self.engine.push_frame(&views).map_err(StreamError::from)?.is_some() {
             self.hand_out(on_estimate)?;
         }
         Ok(())
@@ -354,10 +352,10 @@ impl<M> FlowStream<M> {
 
     /// Hands the engine's last estimate out with its frame's metadata; frames before it
     /// never get one (the first frame of a forwards/backwards stream).
-    fn hand_out(
+    fn hand_out<E: From<StreamError>>(
         &mut self,
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), StreamError>,
-    ) -> Result<(), StreamError> {
+        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+    ) -> Result<(), E> {
         let frame = self.engine.stats().frame;
         while let Some((k, meta)) = self.waiting.pop_front() {
             if k == frame {
