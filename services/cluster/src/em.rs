@@ -296,6 +296,34 @@ fn subsample(
 }
 
 /// Initial means for a first frame without predictions: the top, bottom-left and
+/// Extends `seeds` with `extra` means at the usable points farthest (in position) from every
+/// seed so far, one after another (farthest-point seeding): components for whatever else
+/// shows as skin (a neck, a ghost behind the head, a second blob of one hand), so the three
+/// objects' components are not stretched over it. Fewer are added when no point lies
+/// farther than `min_distance_m` from the seeds.
+pub fn farthest_point_seeds(
+    points: &[WeightedPoint],
+    seeds: &mut Vec<(Vector3<f64>, Vector3<f64>)>,
+    extra: usize,
+    min_distance_m: f64,
+) {
+    for _ in 0..extra {
+        let farthest = points
+            .iter()
+            .filter(|p| {
+                p.weight > 0.0
+                    && p.weight.is_finite()
+                    && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
+            })
+            .map(|p| (p, seeds.iter().map(|(s, _)| (p.position - s).norm()).fold(f64::INFINITY, f64::min)))
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        match farthest {
+            Some((p, d)) if d > min_distance_m => seeds.push((p.position, p.velocity)),
+            _ => break,
+        }
+    }
+}
+
 /// bottom-right extremities of the scene (section 4.2). `up` is the world's up and `right`
 /// the direction that is right as the observer sees it. Top: the mean of the highest tenth
 /// of the weight; bottom-left and bottom-right: of the lowest and highest fifth along
@@ -603,5 +631,36 @@ mod tests {
                 proptest::prop_assert!(comp.covariance.symmetric_eigen().eigenvalues.iter().all(|&e| e > 0.0));
             }
         }
+    }
+
+    #[test]
+    fn farthest_point_seeds_go_to_unexplained_blobs_only() {
+        let at = |x: f64, y: f64| WeightedPoint {
+            position: Vector3::new(x, y, 0.0),
+            velocity: Vector3::zeros(),
+            weight: 1.0,
+        };
+        let mut points: Vec<WeightedPoint> = Vec::new();
+        for (cx, cy) in [(0.0, 1.6), (-0.3, 1.1), (0.3, 1.1)] {
+            points.extend((0..20).map(|i| at(cx + 0.002 * f64::from(i), cy)));
+        }
+        let objects: Vec<(Vector3<f64>, Vector3<f64>)> = [(0.0, 1.6), (-0.3, 1.1), (0.3, 1.1)]
+            .iter()
+            .map(|&(x, y)| (Vector3::new(x, y, 0.0), Vector3::zeros()))
+            .collect();
+        // Every point is explained: no seed is added.
+        let mut seeds = objects.clone();
+        farthest_point_seeds(&points, &mut seeds, 2, 0.12);
+        assert_eq!(seeds.len(), 3);
+        // A neck blob gets one; the second extra seed finds nothing far enough.
+        points.extend((0..10).map(|i| at(0.001 * f64::from(i), 1.4)));
+        let mut seeds = objects.clone();
+        farthest_point_seeds(&points, &mut seeds, 2, 0.12);
+        assert_eq!(seeds.len(), 4);
+        assert!((seeds[3].0 - Vector3::new(0.0, 1.4, 0.0)).norm() < 0.02, "{:?}", seeds[3].0);
+        // Unusable points never seed.
+        let mut seeds = objects;
+        farthest_point_seeds(&[WeightedPoint { weight: f64::NAN, ..at(5.0, 5.0) }], &mut seeds, 2, 0.12);
+        assert_eq!(seeds.len(), 3);
     }
 }

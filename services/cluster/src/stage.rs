@@ -8,13 +8,20 @@ use handflow_protocol::messages::ScenePoint;
 use handflow_protocol::Camera;
 use nalgebra::{Point3, Vector3};
 
-use crate::em::{extremity_means, fit_mixture, Component, EmConfig};
+use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, Component, EmConfig};
 use crate::tracks::{State, Tracker, TrackerConfig};
 use crate::WeightedPoint;
 
 /// The largest half-thickness the centre correction assumes for a hand, metres: an adult
 /// palm is 2-4 cm thick, a loose fist a little more.
 pub const HAND_HALF_THICKNESS_M: f64 = 0.02;
+/// Components fitted besides head and hands, seeded at the points farthest from them: skin
+/// the three objects do not explain (the neck, a ghost, a hand seen split in two by another
+/// view's occlusion) gets a component of its own instead of pulling two hands into one.
+pub const CLUTTER_COMPONENTS: usize = 2;
+/// A clutter component is seeded only at a point this far from every other seed, metres
+/// (farther than a hand's own extent).
+pub const CLUTTER_SEED_DISTANCE_M: f64 = 0.12;
 
 /// One object after a frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -84,7 +91,11 @@ impl ClusterStage {
             Some(p) => Some(p),
             None => extremity_means(&self.points, self.up, self.signer_left),
         };
-        let mut fit = initial.and_then(|init| fit_mixture(&self.points, &init, &self.em));
+        let mut fit = initial.and_then(|init| {
+            let mut seeds = init.to_vec();
+            farthest_point_seeds(&self.points, &mut seeds, CLUTTER_COMPONENTS, CLUTTER_SEED_DISTANCE_M);
+            fit_mixture(&self.points, &seeds, &self.em)
+        });
         let raw = fit.clone();
         if let (Some(fit), true) = (fit.as_mut(), self.centre_correction) {
             for c in fit.components.iter_mut() {

@@ -3,6 +3,9 @@
 //! rest (a fist or a patterned shirt the detector mistook for a face) are dropped, and the
 //! agreed face is projected into the cameras whose detector missed it (a face turned 35
 //! degrees away is beyond a frontal detector but its cheeks still show the skin colour).
+//! When only one view detects the face, the last agreed face supplies its depth: a head
+//! moves little between detection rounds, so one view's box on the remembered depth is
+//! still a 3D face that can be lent to the others.
 
 use handflow_protocol::Camera;
 use nalgebra::{Point2, Point3};
@@ -22,6 +25,20 @@ pub const MAX_TRANSFER_ANGLE_DEG: f64 = 60.0;
 /// detector's own threshold is 2; false detections seen on synthetic and real frames stay
 /// below 4).
 pub const SINGLE_VIEW_MIN_SCORE: f64 = 5.0;
+/// A single view's detection placed at the remembered face's depth is the same face only
+/// if it lies within this distance of it, metres (a head moves far less between detection
+/// rounds, a fist or a second face is usually farther).
+pub const MAX_ANCHOR_SHIFT_M: f64 = 0.25;
+
+/// A face placed in 3D by agreeing views: where later single-view detections find their
+/// depth.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct KnownFace {
+    /// Centre, world metres.
+    pub centre: [f64; 3],
+    /// Physical width of the detector's box, metres.
+    pub width_m: f64,
+}
 
 /// The faces to adapt each camera's skin model with, and where they came from.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -32,24 +49,40 @@ pub struct FusedFaces {
     pub transferred: Vec<bool>,
     /// Detections dropped because no other view agreed with them.
     pub rejected: usize,
-    /// Face centre in the world, when two or more views agreed.
+    /// Face centre in the world, when two or more views agreed (or one view agreed with a
+    /// remembered face).
     pub centre: Option<[f64; 3]>,
+    /// The face in 3D, to remember for the next round.
+    pub known: Option<KnownFace>,
 }
 
 /// Fuses per-camera detections (`detections[c]` for `cameras[c]`, all of one frame set).
 pub fn fuse_faces(cameras: &[Camera], detections: &[Vec<FaceBox>]) -> FusedFaces {
+    fuse_faces_remembering(cameras, detections, None)
+}
+
+/// [`fuse_faces`], with the face the last rounds placed in 3D: when no two views agree, a
+/// detection at that face's depth and near it is the face, and is lent to the other views.
+pub fn fuse_faces_remembering(
+    cameras: &[Camera],
+    detections: &[Vec<FaceBox>],
+    known: Option<&KnownFace>,
+) -> FusedFaces {
     let total: usize = detections.iter().map(Vec::len).sum();
     let mut out = FusedFaces {
         boxes: vec![None; cameras.len()],
         transferred: vec![false; cameras.len()],
         rejected: 0,
         centre: None,
+        known: None,
     };
     if cameras.len() != detections.len() {
         out.rejected = total;
         return out;
     }
-    if let Some(best) = best_agreement(cameras, detections) {
+    let agreed = best_agreement(cameras, detections)
+        .or_else(|| known.and_then(|k| anchored_on_known_face(cameras, detections, k)));
+    if let Some(best) = agreed {
         let towards = |cam: &Camera| (cam.centre() - best.centre).normalize();
         let facing = best
             .support
@@ -71,7 +104,9 @@ pub fn fuse_faces(cameras: &[Camera], detections: &[Vec<FaceBox>]) -> FusedFaces
         }
         let used = best.support.iter().filter(|s| s.is_some()).count();
         out.rejected = total - used;
-        out.centre = Some([best.centre.x, best.centre.y, best.centre.z]);
+        let centre = [best.centre.x, best.centre.y, best.centre.z];
+        out.centre = Some(centre);
+        out.known = Some(KnownFace { centre, width_m: best.width_m });
         return out;
     }
     // No two views agree: a lone camera, or only one camera sees the face frontally. Keep
@@ -139,6 +174,41 @@ fn best_agreement(cameras: &[Camera], detections: &[Vec<FaceBox>]) -> Option<Agr
                         best = Some(Agreement { centre, width_m, support, score });
                     }
                 }
+            }
+        }
+    }
+    best
+}
+
+/// The best single-view detection that, placed on its ray at the known face's depth in
+/// that camera, has the known face's size and lies near it.
+fn anchored_on_known_face(cameras: &[Camera], detections: &[Vec<FaceBox>], known: &KnownFace) -> Option<Agreement> {
+    let remembered = Point3::from(known.centre);
+    let mut best: Option<Agreement> = None;
+    for (c, (cam, dets)) in cameras.iter().zip(detections).enumerate() {
+        let depth = cam.world_to_camera(&remembered).z;
+        if depth <= 0.0 {
+            continue;
+        }
+        for (k, d) in dets.iter().enumerate() {
+            let ray = cam.back_project(&box_centre(d));
+            // The point of the box centre's ray at the remembered depth in this camera.
+            let along = cam.world_to_camera(&ray.at(1.0)).z - cam.world_to_camera(&ray.origin).z;
+            if along <= 1e-9 {
+                continue;
+            }
+            let centre = ray.at(depth / along);
+            if (centre - remembered).norm() > MAX_ANCHOR_SHIFT_M {
+                continue;
+            }
+            let Some(width_m) = implied_width(cam, d, &centre) else { continue };
+            if width_m.max(known.width_m) / width_m.min(known.width_m) > MAX_SIZE_RATIO {
+                continue;
+            }
+            if best.as_ref().is_none_or(|b| d.score > b.score) {
+                let mut support = vec![None; cameras.len()];
+                support[c] = Some(k);
+                best = Some(Agreement { centre, width_m, support, score: d.score });
             }
         }
     }
@@ -291,5 +361,37 @@ mod tests {
         let fused = fuse_faces(&cams, &dets);
         assert!(fused.centre.is_none());
         assert_eq!(fused.rejected, 2);
+    }
+
+    #[test]
+    fn a_lone_detection_near_the_remembered_face_is_lent_to_the_other_views() {
+        let cams = [arc_camera("a", -40.0), arc_camera("b", 5.0), arc_camera("c", 45.0)];
+        let before = Point3::new(0.0, 0.3, 0.1);
+        let known = KnownFace { centre: [before.x, before.y, before.z], width_m: 0.15 };
+        // The head moved 5 cm sideways; only the front camera finds it, with a weak score.
+        let now = Point3::new(0.05, 0.3, 0.1);
+        let dets = vec![vec![], vec![face_in(&cams[1], &now, 0.15, 3.0)], vec![]];
+        assert_eq!(fuse_faces(&cams, &dets).boxes, vec![None, None, None], "weak and alone: dropped");
+        let fused = fuse_faces_remembering(&cams, &dets, Some(&known));
+        assert_eq!(fused.transferred, vec![true, false, true]);
+        let c = Point3::from(fused.centre.unwrap());
+        assert!((c - now).norm() < 0.01, "{c:?}");
+        let lent = fused.boxes[2].unwrap();
+        let expected = project_face(&cams[2], &now, 0.15).unwrap();
+        assert!((lent.x - expected.x).abs() < 2.0 && (lent.width - expected.width).abs() < 2.0);
+        assert!(fused.known.is_some_and(|k| (k.width_m - 0.15).abs() < 0.005), "{:?}", fused.known);
+    }
+
+    #[test]
+    fn a_lone_detection_far_from_the_remembered_face_is_not_anchored() {
+        let cams = [arc_camera("a", -40.0), arc_camera("b", 5.0), arc_camera("c", 45.0)];
+        let known = KnownFace { centre: [0.0, 0.3, 0.1], width_m: 0.15 };
+        // A fist-sized box low in the image: at the face's depth it is 40 cm away and too small.
+        let fist = Point3::new(0.3, -0.2, 0.1);
+        let dets = vec![vec![], vec![face_in(&cams[1], &fist, 0.09, 3.0)], vec![]];
+        let fused = fuse_faces_remembering(&cams, &dets, Some(&known));
+        assert_eq!(fused.boxes, vec![None, None, None]);
+        assert_eq!(fused.known, None);
+        assert_eq!(fused.rejected, 1);
     }
 }

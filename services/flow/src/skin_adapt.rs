@@ -4,7 +4,7 @@
 
 use handflow_protocol::Camera;
 
-use crate::face_fusion::fuse_faces;
+use crate::face_fusion::{fuse_faces_remembering, KnownFace};
 use crate::faces::{FaceBox, FaceDetector, Region};
 use crate::skin::SkinModel;
 
@@ -44,6 +44,8 @@ pub struct SkinAdapter {
     stats: AdaptationStats,
     /// Per camera: the face used at the last round, where the next search looks.
     last: Vec<Option<FaceBox>>,
+    /// The face last placed in 3D: gives a lone view's detection its depth.
+    known: Option<KnownFace>,
 }
 
 impl SkinAdapter {
@@ -60,6 +62,7 @@ impl SkinAdapter {
                 ..AdaptationStats::default()
             },
             last: vec![None; cameras.len()],
+            known: None,
         })
     }
 
@@ -99,8 +102,11 @@ impl SkinAdapter {
             };
             found.push(self.detector.detect_in(view, cam.width, cam.height, region));
         }
-        let fused = fuse_faces(&self.cameras, &found);
+        let fused = fuse_faces_remembering(&self.cameras, &found, self.known.as_ref());
         self.last.clone_from(&fused.boxes);
+        if fused.known.is_some() {
+            self.known = fused.known;
+        }
         self.stats.rounds += 1;
         self.stats.rejected += fused.rejected as u64;
         let mut changed = false;

@@ -32,6 +32,10 @@ pub const MODEL_LAG: u64 = 5;
 /// Scene Particles per ray on streams: 8 instead of 10 costs no measurable accuracy on the
 /// rendered presets and buys 15% of the time.
 pub const STREAM_PARTICLES_PER_RAY: usize = 8;
+/// Half-size of the support window on the grids a stream estimates (3x3): a 5x5 window
+/// costs 2.8x as much per evaluation and did not improve the trajectories on any preset
+/// (BENCHMARKS.md).
+pub const STREAM_WINDOW_RADIUS: usize = 1;
 /// Extra passes over a stream's first frame: without them the face's depth takes about
 /// five frames to settle and the head starts 4-6 cm too far back (measured on
 /// `signer-3cam`: head agreement 98.0 % with none, 99.3 % with 2, 100 % with 4 and 8; 8
@@ -45,7 +49,9 @@ pub const STREAM_COLD_START_PASSES: usize = 8;
 /// replaces most of the exploration a first frame needs), extra passes over the first
 /// frame ([`STREAM_COLD_START_PASSES`]) and no weighted-median refinement (on the
 /// half-resolution grid its 9x9 window spans two palm widths' worth of edges and
-/// measurably moved points off the hands). BENCHMARKS.md has the measurements.
+/// measurably moved points off the hands), and 3x3 support windows instead of 5x5 on every
+/// level (the same trajectories on every preset, 1.3x faster). BENCHMARKS.md has the
+/// measurements.
 pub fn stream_engine_config(variant: Variant, particles_per_ray: Option<usize>, fps: f64) -> EngineConfig {
     let defaults = EngineConfig::for_variant(variant);
     EngineConfig {
@@ -54,6 +60,7 @@ pub fn stream_engine_config(variant: Variant, particles_per_ray: Option<usize>, 
         warm_coarse_extra_loops: Some(2.min(defaults.coarse_extra_loops)),
         cold_start_passes: STREAM_COLD_START_PASSES,
         refine_radius: 0,
+        coarse_window_radius: STREAM_WINDOW_RADIUS,
         coverage: Coverage::Skin,
         temporal: Temporal::ForwardsBackwards,
         depth_range: STREAM_DEPTH_RANGE_M,
