@@ -89,12 +89,7 @@ pub fn fit_mixture(
     config: &EmConfig,
 ) -> Option<EmFit> {
     let s = config.velocity_scale;
-    let usable: Vec<&WeightedPoint> = points
-        .iter()
-        .filter(|p| {
-            p.weight > 0.0 && p.weight.is_finite() && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
-        })
-        .collect();
+    let usable: Vec<&WeightedPoint> = points.iter().filter(|p| p.is_usable()).collect();
     if usable.is_empty() || initial.is_empty() {
         return None;
     }
@@ -295,7 +290,6 @@ fn subsample(
     (features, weights)
 }
 
-/// Initial means for a first frame without predictions: the top, bottom-left and
 /// Extends `seeds` with `extra` means at the usable points farthest (in position) from every
 /// seed so far, one after another (farthest-point seeding): components for whatever else
 /// shows as skin (a neck, a ghost behind the head, a second blob of one hand), so the three
@@ -310,11 +304,7 @@ pub fn farthest_point_seeds(
     for _ in 0..extra {
         let farthest = points
             .iter()
-            .filter(|p| {
-                p.weight > 0.0
-                    && p.weight.is_finite()
-                    && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
-            })
+            .filter(|p| p.is_usable())
             .map(|p| (p, seeds.iter().map(|(s, _)| (p.position - s).norm()).fold(f64::INFINITY, f64::min)))
             .max_by(|a, b| a.1.total_cmp(&b.1));
         match farthest {
@@ -324,6 +314,7 @@ pub fn farthest_point_seeds(
     }
 }
 
+/// Initial means for a first frame without predictions: the top, bottom-left and
 /// bottom-right extremities of the scene (section 4.2). `up` is the world's up and `right`
 /// the direction that is right as the observer sees it. Top: the mean of the highest tenth
 /// of the weight; bottom-left and bottom-right: of the lowest and highest fifth along
@@ -333,12 +324,7 @@ pub fn extremity_means(
     up: Vector3<f64>,
     right: Vector3<f64>,
 ) -> Option<[(Vector3<f64>, Vector3<f64>); 3]> {
-    let usable: Vec<&WeightedPoint> = points
-        .iter()
-        .filter(|p| {
-            p.weight > 0.0 && p.weight.is_finite() && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
-        })
-        .collect();
+    let usable: Vec<&WeightedPoint> = points.iter().filter(|p| p.is_usable()).collect();
     if usable.is_empty() {
         return None;
     }

@@ -25,6 +25,14 @@ pub struct WeightedPoint {
 }
 
 impl WeightedPoint {
+    /// Whether the point can take part in clustering: a positive, finite weight and finite
+    /// coordinates (external input may carry anything).
+    pub fn is_usable(&self) -> bool {
+        self.weight > 0.0
+            && self.weight.is_finite()
+            && self.position.iter().chain(self.velocity.iter()).all(|v| v.is_finite())
+    }
+
     /// The point in the 6D clustering space: velocity multiplied by `velocity_scale` (in
     /// seconds) so that both halves are lengths and one metric compares them.
     pub fn feature(&self, velocity_scale: f64) -> Vector6<f64> {
@@ -47,9 +55,7 @@ pub struct Moments {
 /// Weighted moments of `points`; `None` when there is no positive, finite weight.
 /// Non-finite points and negative weights are skipped (they carry no evidence).
 pub fn weighted_moments(points: &[WeightedPoint], velocity_scale: f64) -> Option<Moments> {
-    let usable = |p: &&WeightedPoint| {
-        p.weight > 0.0 && p.weight.is_finite() && p.position.iter().chain(p.velocity.iter()).all(|v| v.is_finite())
-    };
+    let usable = |p: &&WeightedPoint| p.is_usable();
     let total: f64 = points.iter().filter(usable).map(|p| p.weight).sum();
     if total.is_nan() || total <= 0.0 {
         return None;

@@ -104,9 +104,7 @@ impl SkinAdapter {
         }
         let fused = fuse_faces_remembering(&self.cameras, &found, self.known.as_ref());
         self.last.clone_from(&fused.boxes);
-        if fused.known.is_some() {
-            self.known = fused.known;
-        }
+        self.known = fused.known.or(self.known);
         self.stats.rounds += 1;
         self.stats.rejected += fused.rejected as u64;
         let mut changed = false;
