@@ -77,32 +77,19 @@ pub fn track_recording(
     anyhow::ensure!(frames >= 2, "recording `{}` needs at least 2 frames, has {frames}", dir.display());
     let mut flow = FlowStream::new(engine);
     let mut stage = ClusterStage::new(&rig.cameras[reference], options.centre_correction);
-    let mut points: Vec<ScenePoint> = Vec::new();
     let mut written = 0;
     // Every frame but the first gets an estimate (the last through the flush).
     let total = frames - 1;
-    let mut on_estimate = |k: usize, engine: &SceneFlowEngine| -> Result<()> {
-        let entry = rec.frames().get(k).with_context(|| format!("estimate for frame {k} beyond the recording"))?;
-        points.clear();
-        points.extend(scene_points(engine));
-        let objects = stage.update(entry.timestamp, fps, ray_spread_variance(engine), &points);
-        let set = ClusterSet {
-            protocol_version: PROTOCOL_VERSION,
-            frame: entry.frame,
-            sequence: k as u64,
-            timestamp_s: entry.timestamp,
-            objects: labelled_clusters(&objects),
-            ..ClusterSet::default()
-        };
-        let record = TrajectoryRecord::from_sample(&trajectory_sample(&set, 0, 0));
-        written += 1;
-        on_record(&record, written, total)
-    };
-    // Frames are decoded one ahead on a thread of their own; faces are detected beside the
-    // engine (inside the flow stream).
+    // Three threads beside the engine's pool, as the services run in processes of their
+    // own: frames are decoded one ahead, faces are detected inside the flow stream, and
+    // each estimate is clustered while the engine works on the next frame (EM would
+    // otherwise leave a core idle for its ~5 ms every frame).
     std::thread::scope(|scope| -> Result<()> {
         let (frame_tx, frame_rx) = std::sync::mpsc::sync_channel::<Result<Vec<u8>>>(2);
         let (spare_tx, spare_rx) = std::sync::mpsc::channel::<Vec<u8>>();
+        let (points_tx, points_rx) = std::sync::mpsc::sync_channel::<(usize, f64, Vec<ScenePoint>)>(2);
+        let (spare_points_tx, spare_points_rx) = std::sync::mpsc::channel::<Vec<ScenePoint>>();
+        let (record_tx, record_rx) = std::sync::mpsc::channel::<Result<TrajectoryRecord>>();
         let rec_ref = &rec;
         scope.spawn(move || {
             for k in 0..frames {
@@ -114,14 +101,56 @@ pub fn track_recording(
                 }
             }
         });
+        let stage_ref = &mut stage;
+        scope.spawn(move || {
+            for (k, spread, points) in points_rx {
+                let record = rec_ref
+                    .frames()
+                    .get(k)
+                    .with_context(|| format!("estimate for frame {k} beyond the recording"))
+                    .map(|entry| {
+                        let objects = stage_ref.update(entry.timestamp, fps, spread, &points);
+                        let set = ClusterSet {
+                            protocol_version: PROTOCOL_VERSION,
+                            frame: entry.frame,
+                            sequence: k as u64,
+                            timestamp_s: entry.timestamp,
+                            objects: labelled_clusters(&objects),
+                            ..ClusterSet::default()
+                        };
+                        TrajectoryRecord::from_sample(&trajectory_sample(&set, 0, 0))
+                    });
+                let _ = spare_points_tx.send(points);
+                if record_tx.send(record).is_err() {
+                    return;
+                }
+            }
+        });
+        let mut on_estimate = |k: usize, engine: &SceneFlowEngine| -> Result<()> {
+            let mut points = spare_points_rx.try_recv().unwrap_or_default();
+            points.clear();
+            points.extend(scene_points(engine));
+            points_tx.send((k, ray_spread_variance(engine), points)).context("the clustering thread stopped")
+        };
+        let mut hand_on = |record: Result<TrajectoryRecord>| -> Result<()> {
+            written += 1;
+            on_record(&record?, written, total)
+        };
         for k in 0..frames {
             let buf = frame_rx.recv().context("the decoding thread stopped")??;
             let pushed = flow.push(k, &buf, &mut on_estimate);
             let _ = spare_tx.send(buf);
             pushed.with_context(|| format!("frame {k}"))?;
+            for record in record_rx.try_iter() {
+                hand_on(record)?;
+            }
         }
         let finished = flow.finish(&mut on_estimate);
         finished.context("end of the recording")?;
+        drop(points_tx);
+        for record in record_rx {
+            hand_on(record)?;
+        }
         Ok(())
     })?;
     let seconds = started.elapsed().as_secs_f64();

@@ -1016,8 +1016,10 @@ impl SkinTerm<'_> {
                 continue;
             }
             let Some([u, v]) = proj.project(pos) else { continue };
-            let (x, y) = (u.round(), v.round());
-            if x >= 0.0 && y >= 0.0 && x < cam.width as f32 && y < cam.height as f32 {
+            // Nearest pixel: for u, v > -0.5 truncating u + 0.5 rounds (and, unlike
+            // `round`, needs no libm call without SSE4.1).
+            let (x, y) = (u + 0.5, v + 0.5);
+            if x > 0.0 && y > 0.0 && x < cam.width as f32 && y < cam.height as f32 {
                 let hq = map[y as usize * cam.width as usize + x as usize];
                 h += hq;
                 worst = worst.min(hq);

@@ -163,10 +163,24 @@ pub fn robust_window_cost(
         return truncation;
     }
     let keep = keep.clamp(1, n);
-    let costs = &mut costs[..n];
-    // Partial selection of the `keep` smallest costs; n is at most 24.
-    costs.select_nth_unstable_by(keep - 1, f32::total_cmp);
-    costs[..keep].iter().sum::<f32>() / keep as f32
+    mean_of_smallest(&mut costs[..n], keep)
+}
+
+/// The mean of the `keep` smallest values. An insertion sort: `values` holds at most
+/// [`MAX_IMAGES`] costs, where a general selection's call and set-up cost more than the
+/// sort itself.
+#[inline(always)]
+fn mean_of_smallest(values: &mut [f32], keep: usize) -> f32 {
+    for i in 1..values.len() {
+        let v = values[i];
+        let mut j = i;
+        while j > 0 && values[j - 1] > v {
+            values[j] = values[j - 1];
+            j -= 1;
+        }
+        values[j] = v;
+    }
+    values[..keep].iter().sum::<f32>() / keep as f32
 }
 
 /// Sum over the window and channels of `min(|ref - sample|, truncation)`, or `None` when
@@ -244,15 +258,10 @@ fn window_cost_interior_fixed<const R: usize, const SIDE: usize, const TEXELS: u
     let (fx, fy) = (u - cx as f32, v - cy as f32);
     let (x0, y0) = (cx - R, cy - R);
     let pixels = image.pixels();
-    let lerp_row = |j: usize| -> [Rgba; SIDE] {
-        let base = (y0 + j) * w + x0;
-        let texels: &[Rgba; TEXELS] = pixels[base..base + TEXELS].try_into().unwrap_or(&[[0.0; 4]; TEXELS]);
-        std::array::from_fn(|i| std::array::from_fn(|k| texels[i][k] + (texels[i + 1][k] - texels[i][k]) * fx))
-    };
     let mut acc = [0f32; 4];
-    let mut upper = lerp_row(0);
+    let mut upper = lerp_row::<SIDE, TEXELS>(pixels, y0 * w + x0, fx);
     for j in 0..SIDE {
-        let lower = lerp_row(j + 1);
+        let lower = lerp_row::<SIDE, TEXELS>(pixels, (y0 + j + 1) * w + x0, fx);
         for i in 0..SIDE {
             let refc = reference.colours[j * SIDE + i];
             for k in 0..4 {
@@ -263,6 +272,18 @@ fn window_cost_interior_fixed<const R: usize, const SIDE: usize, const TEXELS: u
         upper = lower;
     }
     Some(acc[0] + acc[1] + acc[2] + acc[3])
+}
+
+/// `SIDE` samples along a texel row starting at `base`, each interpolated at `fx` between
+/// its texel and the next. A function rather than a closure so it is always inlined: as a
+/// call, its result went through the stack on every row.
+#[inline(always)]
+fn lerp_row<const SIDE: usize, const TEXELS: usize>(pixels: &[Rgba], base: usize, fx: f32) -> [Rgba; SIDE] {
+    let texels: &[Rgba; TEXELS] = match pixels.get(base..base + TEXELS).and_then(|t| t.try_into().ok()) {
+        Some(t) => t,
+        None => &[[0.0; 4]; TEXELS],
+    };
+    std::array::from_fn(|i| std::array::from_fn(|k| texels[i][k] + (texels[i + 1][k] - texels[i][k]) * fx))
 }
 
 /// The world point of a particle at frame offset `k`: `r + k v`.
