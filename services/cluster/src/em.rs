@@ -138,7 +138,8 @@ pub fn fit_mixture(
             .zip(&mixing)
             .map(|(c, m)| {
                 let (chol, log_det) = robust_cholesky(c, floor);
-                let inverse = chol.l().try_inverse().unwrap_or_else(Matrix6::identity);
+                // Lower-triangular, with exact zeros above the diagonal (the E-step relies on it).
+                let inverse = chol.l().solve_lower_triangular(&Matrix6::identity()).unwrap_or_else(Matrix6::identity);
                 let constant = m.max(1e-300).ln() - 0.5 * (log_det + 6.0 * (2.0 * std::f64::consts::PI).ln());
                 (inverse, constant)
             })
@@ -150,8 +151,7 @@ pub fn fit_mixture(
             let mut best = log_out;
             for (j, r) in row.iter_mut().enumerate() {
                 let (inverse, constant) = &prepared[j];
-                let y = inverse * (f - means[j]);
-                *r = constant - 0.5 * y.norm_squared();
+                *r = constant - 0.5 * lower_product_norm_squared(inverse, &(f - means[j]));
                 best = best.max(*r);
             }
             let mut sum = (log_out - best).exp();
@@ -168,17 +168,28 @@ pub fn fit_mixture(
         log_likelihood = ll / wsum;
         // M-step: one pass accumulating each component's weight, first and second moments
         // (f64 keeps the centred second moment exact enough at metre scale).
-        let mut acc = vec![(0.0f64, Vector6::<f64>::zeros(), Matrix6::<f64>::zeros()); k];
+        // Second moments are symmetric: only the lower triangle is accumulated.
+        let mut acc = vec![(0.0f64, Vector6::<f64>::zeros(), [0.0f64; TRIANGLE]); k];
         for (i, f) in features.iter().enumerate() {
-            let outer = f * f.transpose();
+            let mut outer = [0.0f64; TRIANGLE];
+            let mut t = 0;
+            for r in 0..6 {
+                for c in 0..=r {
+                    outer[t] = f[r] * f[c];
+                    t += 1;
+                }
+            }
             for (j, (m, first, second)) in acc.iter_mut().enumerate() {
                 let w = weights[i] * resp[i * k + j];
                 *m += w;
                 *first += f * w;
-                *second += outer * w;
+                for (s, o) in second.iter_mut().zip(&outer) {
+                    *s += o * w;
+                }
             }
         }
-        for (j, (mass, first, second)) in acc.into_iter().enumerate() {
+        for (j, (mass, first, lower)) in acc.into_iter().enumerate() {
+            let second = symmetric_from_lower(&lower);
             masses[j] = mass;
             if mass <= EMPTY_SHARE * wsum {
                 // Nothing to explain: stay where it started, broad, able to recapture points.
@@ -234,6 +245,38 @@ pub fn fit_mixture(
         points_used: features.len(),
         outlier_share: if config.outliers { unexplained } else { 0.0 },
     })
+}
+
+/// Entries in the lower triangle of a 6x6 matrix.
+const TRIANGLE: usize = 21;
+
+/// The symmetric matrix whose lower triangle is `lower` (row by row).
+fn symmetric_from_lower(lower: &[f64; TRIANGLE]) -> Matrix6<f64> {
+    let mut m = Matrix6::zeros();
+    let mut t = 0;
+    for r in 0..6 {
+        for c in 0..=r {
+            m[(r, c)] = lower[t];
+            m[(c, r)] = lower[t];
+            t += 1;
+        }
+    }
+    m
+}
+
+/// `|L d|^2` for a lower-triangular `L`: the terms above the diagonal are zero, so they are
+/// skipped (21 products instead of 36; the sums are the same, in the same order).
+#[inline]
+fn lower_product_norm_squared(l: &Matrix6<f64>, d: &Vector6<f64>) -> f64 {
+    let mut sum = 0.0;
+    for r in 0..6 {
+        let mut y = 0.0;
+        for c in 0..=r {
+            y += l[(r, c)] * d[c];
+        }
+        sum += y * y;
+    }
+    sum
 }
 
 /// Cholesky factor and log-determinant, regularising the diagonal until it factors.
@@ -302,13 +345,14 @@ pub fn farthest_point_seeds(
     min_distance_m: f64,
 ) {
     for _ in 0..extra {
+        // Squared distances: the same order without a square root per point and seed.
         let farthest = points
             .iter()
             .filter(|p| p.is_usable())
-            .map(|p| (p, seeds.iter().map(|(s, _)| (p.position - s).norm()).fold(f64::INFINITY, f64::min)))
+            .map(|p| (p, seeds.iter().map(|(s, _)| (p.position - s).norm_squared()).fold(f64::INFINITY, f64::min)))
             .max_by(|a, b| a.1.total_cmp(&b.1));
         match farthest {
-            Some((p, d)) if d > min_distance_m => seeds.push((p.position, p.velocity)),
+            Some((p, d_sq)) if d_sq > min_distance_m * min_distance_m => seeds.push((p.position, p.velocity)),
             _ => break,
         }
     }
