@@ -68,6 +68,10 @@ pub struct TrackerConfig {
     /// a hand turning edge-on over a third of a second is followed, a one-frame occlusion
     /// is not).
     pub typical_mass_rate: f64,
+    /// Farthest a hand can be from the head, metres (default 1.0: an adult's arm and
+    /// shoulder). Tracks start only on hands within this reach, so skin-like clutter or a
+    /// ghost surface behind the signer never becomes a hand.
+    pub reach_m: f64,
 }
 
 impl Default for TrackerConfig {
@@ -82,6 +86,7 @@ impl Default for TrackerConfig {
             velocity_gain: 0.5,
             partial_mass_share: (0.25, 0.75),
             typical_mass_rate: 0.1,
+            reach_m: 1.0,
         }
     }
 }
@@ -215,15 +220,21 @@ impl Tracker {
         )
     }
 
-    /// First labelling: head is the highest cluster, the hands are told apart by the
-    /// signer's left. Needs three clusters.
+    /// First labelling: head is the highest cluster, the hands are the two largest within
+    /// reach of it, told apart by the signer's left. Needs three such clusters (until then
+    /// no track starts).
     fn start(&mut self, clusters: &[&Component]) -> Option<[Track; 3]> {
         if clusters.len() < 3 {
             return None;
         }
         let head = (0..clusters.len())
             .max_by(|&a, &b| clusters[a].position.dot(&self.up).total_cmp(&clusters[b].position.dot(&self.up)))?;
-        let mut hands: Vec<usize> = (0..clusters.len()).filter(|&k| k != head).collect();
+        let mut hands: Vec<usize> = (0..clusters.len())
+            .filter(|&k| k != head && (clusters[k].position - clusters[head].position).norm() <= self.config.reach_m)
+            .collect();
+        if hands.len() < 2 {
+            return None;
+        }
         // Of the remaining, the two largest are the hands.
         hands.sort_by(|&a, &b| clusters[b].mass.total_cmp(&clusters[a].mass));
         hands.truncate(2);
@@ -403,6 +414,24 @@ mod tests {
         assert_eq!(tracks[1].position.x, 0.25, "left hand on the signer's left");
         assert_eq!(tracks[2].position.x, -0.2);
         assert!(tracks.iter().all(|k| k.state == State::Tracked));
+    }
+
+    #[test]
+    fn tracks_start_only_on_hands_within_reach_of_the_head() {
+        let mut t = tracker();
+        // Both hands in one blob below the head, and a larger skin-like ghost 1.4 m behind:
+        // the ghost is out of reach, so there is no second hand and no start.
+        let blob = cluster(0.0, 1.15, 0.0, 1.0);
+        let ghost = Component { position: Vector3::new(0.2, 1.45, 1.4), ..cluster(0.0, 0.0, 0.0, 1.5) };
+        let head = cluster(0.0, 1.6, 0.0, 2.0);
+        let tracks = t.update(0.0, Some(&fit(vec![head, blob, ghost])));
+        assert!(t.tracks().is_none(), "no track may start on the ghost");
+        assert!(tracks.iter().all(|k| k.state == State::Lost));
+        // The hands part: the start takes them, not the larger ghost.
+        let (left, right) = (cluster(0.1, 1.15, 0.0, 0.5), cluster(-0.1, 1.15, 0.0, 0.5));
+        let tracks = t.update(1.0 / 30.0, Some(&fit(vec![head, left, ghost, right])));
+        assert_eq!(tracks[1].position.x, 0.1);
+        assert_eq!(tracks[2].position.x, -0.1);
     }
 
     #[test]

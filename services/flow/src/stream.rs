@@ -36,6 +36,13 @@ pub const STREAM_PARTICLES_PER_RAY: usize = 8;
 /// costs 2.8x as much per evaluation and did not improve the trajectories on any preset
 /// (BENCHMARKS.md).
 pub const STREAM_WINDOW_RADIUS: usize = 1;
+/// Prior on motion in depth on streams, as a fraction of the speed bound (the engine's
+/// default, 0.1, was chosen on the narrow Middlebury rig). A signer's hands move towards
+/// and away from the cameras at up to about 1 m/s; with 0.1 the flow's depth velocity for
+/// such a hand stayed near zero, so its particles, carried by that velocity, lagged 2-7 cm
+/// behind in depth (occluded-side's right hand: 94.6 % agreement; 99.3 % with 0.15).
+/// BENCHMARKS.md has the sweep over presets and unseen scenes.
+pub const STREAM_VELOCITY_PRIOR_DEPTH: f32 = 0.15;
 /// Extra passes over a stream's first frame: without them the face's depth takes about
 /// five frames to settle and the head starts 4-6 cm too far back (measured on
 /// `signer-3cam`: head agreement 98.0 % with none, 99.3 % with 2, 100 % with 4 and 8; 8
@@ -50,8 +57,8 @@ pub const STREAM_COLD_START_PASSES: usize = 8;
 /// frame ([`STREAM_COLD_START_PASSES`]) and no weighted-median refinement (on the
 /// half-resolution grid its 9x9 window spans two palm widths' worth of edges and
 /// measurably moved points off the hands), and 3x3 support windows instead of 5x5 on every
-/// level (the same trajectories on every preset, 1.3x faster). BENCHMARKS.md has the
-/// measurements.
+/// level (the same trajectories on every preset, 1.3x faster), and a weaker prior on
+/// motion in depth ([`STREAM_VELOCITY_PRIOR_DEPTH`]). BENCHMARKS.md has the measurements.
 pub fn stream_engine_config(variant: Variant, particles_per_ray: Option<usize>, fps: f64) -> EngineConfig {
     let defaults = EngineConfig::for_variant(variant);
     EngineConfig {
@@ -64,6 +71,7 @@ pub fn stream_engine_config(variant: Variant, particles_per_ray: Option<usize>, 
         coverage: Coverage::Skin,
         temporal: Temporal::ForwardsBackwards,
         depth_range: STREAM_DEPTH_RANGE_M,
+        velocity_prior_depth: STREAM_VELOCITY_PRIOR_DEPTH,
         speed_bound: STREAM_SPEED_BOUND_M_S / fps.max(1.0) as f32,
         ..defaults
     }
