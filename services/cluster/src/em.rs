@@ -23,6 +23,12 @@ pub struct EmConfig {
     /// Standard deviation added to every dimension's variance, metres in the scaled space
     /// (default 0.01): covariances never become singular, even for a cluster of one point.
     pub min_std: f64,
+    /// Largest standard deviation of the starting components in every dimension, metres in
+    /// the scaled space (default 0.05, about the spread of a hand's points): each component starts on the points
+    /// near its initial mean. Starting with the spread of the whole scene instead (clutter
+    /// metres away included) made the components nearly identical at first, and two hands
+    /// 25 cm apart could end up in one component while the other wandered off to the neck.
+    pub start_std: f64,
     /// Seed of the subsampling offset (default 0).
     pub seed: u64,
     /// Model points no Gaussian explains with a uniform density over the points' bounding
@@ -39,6 +45,7 @@ impl Default for EmConfig {
             velocity_scale: 0.1,
             max_points: 4000,
             min_std: 0.01,
+            start_std: 0.05,
             seed: 0,
             outliers: true,
         }
@@ -98,7 +105,8 @@ pub fn fit_mixture(
     let wsum: f64 = weights.iter().sum();
     let k = initial.len();
     let floor = config.min_std * config.min_std;
-    // A broad start: every dimension with the data's mean positional variance.
+    // The start: every dimension with the data's mean positional variance, at most
+    // `start_std` squared.
     let mean_all = features.iter().zip(&weights).fold(Vector6::zeros(), |a, (f, w)| a + f * *w) / wsum;
     let spread = features
         .iter()
@@ -106,7 +114,7 @@ pub fn fit_mixture(
         .map(|(f, w)| w * (0..3).map(|d| (f[d] - mean_all[d]).powi(2)).sum::<f64>() / 3.0)
         .sum::<f64>()
         / wsum;
-    let start_cov = Matrix6::identity() * (spread + floor);
+    let start_cov = Matrix6::identity() * (spread.min(config.start_std * config.start_std) + floor);
     let start_means: Vec<Vector6<f64>> =
         initial.iter().map(|(p, v)| Vector6::new(p.x, p.y, p.z, v.x * s, v.y * s, v.z * s)).collect();
     let mut means = start_means.clone();
@@ -507,6 +515,33 @@ mod tests {
         let mass: f64 = fit.components.iter().map(|c| c.mass).sum();
         assert!((mass / total + fit.outlier_share - 1.0).abs() < 1e-9);
         assert!(fit.outlier_share < 0.01, "clean data: {}", fit.outlier_share);
+    }
+
+    #[test]
+    fn two_close_hands_stay_apart_beside_a_neck_and_distant_clutter() {
+        let mut rng = Normal(9);
+        // Head, two hands 27 cm apart moving towards each other, a neck blob between head
+        // and hands, and skin-like clutter 1-3 m away that widens the scene's spread to
+        // metres: the layout of a frame where both hands once ended in one component.
+        let mut pts = blob(&mut rng, 2000, [0.0, 1.61, 0.05], [0.0; 3], 0.04, 0.05);
+        pts.extend(blob(&mut rng, 800, [0.17, 1.16, 0.22], [-0.25, 0.25, 0.0], 0.04, 0.15));
+        pts.extend(blob(&mut rng, 800, [-0.07, 1.29, 0.27], [0.14, -0.26, 0.0], 0.04, 0.15));
+        pts.extend(blob(&mut rng, 300, [0.05, 1.45, -0.02], [0.0; 3], 0.04, 0.05));
+        pts.extend(blob(&mut rng, 300, [-0.7, 0.55, -0.7], [0.0; 3], 0.05, 0.05));
+        pts.extend(blob(&mut rng, 300, [1.3, 0.7, -2.1], [0.0; 3], 0.3, 0.5));
+        // Predictions a few centimetres off, as a constant-velocity model gives them, and
+        // two clutter seeds.
+        let init = [
+            (Vector3::new(0.01, 1.6, 0.05), Vector3::zeros()),
+            (Vector3::new(0.19, 1.15, 0.2), Vector3::new(-0.25, 0.25, 0.0)),
+            (Vector3::new(-0.06, 1.31, 0.27), Vector3::new(0.14, -0.26, 0.0)),
+            (Vector3::new(-0.7, 0.55, -0.7), Vector3::zeros()),
+            (Vector3::new(1.3, 0.7, -2.1), Vector3::zeros()),
+        ];
+        let fit = fit_mixture(&pts, &init, &EmConfig::default()).unwrap();
+        for (c, p) in fit.components.iter().zip([[0.0, 1.61, 0.05], [0.17, 1.16, 0.22], [-0.07, 1.29, 0.27]]) {
+            assert!((c.position - Vector3::from(p)).norm() < 0.03, "{:?} for {p:?}", c.position);
+        }
     }
 
     #[test]
