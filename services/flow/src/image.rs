@@ -62,37 +62,34 @@ impl ColourImage {
         use rayon::prelude::*;
         debug_assert_eq!(rgb.len(), width * height * 3);
         self.resize(width, height);
-        let n = (width * height).max(1) as f64;
-        // Exact integer sums, rows in parallel.
+        let table = normalisation_table(width, height, rgb);
         let row_bytes = (width * 3).max(1);
-        let (sum, sum_sq) = rgb
-            .par_chunks(row_bytes)
-            .map(|row| {
-                let (mut s, mut q) = ([0u64; 3], [0u64; 3]);
-                for px in row.chunks_exact(3) {
-                    for c in 0..3 {
-                        let v = u64::from(px[c]);
-                        s[c] += v;
-                        q[c] += v * v;
-                    }
-                }
-                (s, q)
-            })
-            .reduce(
-                || ([0u64; 3], [0u64; 3]),
-                |(a, b), (c, d)| (std::array::from_fn(|k| a[k] + c[k]), std::array::from_fn(|k| b[k] + d[k])),
-            );
-        let mean = sum.map(|s| s as f64 / n);
-        let variance: f64 = (0..3).map(|c| sum_sq[c] as f64 / n - mean[c] * mean[c]).sum::<f64>() / 3.0;
-        let scale = if variance > 1e-9 { 1.0 / variance.sqrt() } else { 1.0 };
-        // One table per channel: 256 values instead of a subtraction and product per pixel.
-        let table: [[f32; 256]; 3] =
-            std::array::from_fn(|c| std::array::from_fn(|v| ((v as f64 - mean[c]) * scale) as f32));
         self.pixels.par_chunks_mut(width.max(1)).zip(rgb.par_chunks(row_bytes)).for_each(|(dst, row)| {
             for (d, px) in dst.iter_mut().zip(row.chunks_exact(3)) {
-                *d = [table[0][usize::from(px[0])], table[1][usize::from(px[1])], table[2][usize::from(px[2])], 0.0];
+                *d = normalised_texel(&table, px);
             }
         });
+    }
+
+    /// What [`ColourImage::set_normalised_from_rgb8`] followed by
+    /// [`ColourImage::downsample_into`] gives, the same values, without writing and reading
+    /// back the full-resolution float image (a third of the memory traffic of building a
+    /// frame's pyramid when nothing matches at full resolution).
+    pub fn set_normalised_half_from_rgb8(&mut self, width: usize, height: usize, rgb: &[u8], scratch: &mut Vec<Rgba>) {
+        use rayon::prelude::*;
+        debug_assert_eq!(rgb.len(), width * height * 3);
+        if width == 0 || height == 0 {
+            self.resize(0, 0);
+            return;
+        }
+        let table = normalisation_table(width, height, rgb);
+        let cw = width.div_ceil(2);
+        scratch.clear();
+        scratch.resize(cw * height, [0.0; 4]);
+        scratch.par_chunks_mut(cw).zip(rgb.par_chunks(width * 3)).for_each(|(out, row)| {
+            horizontal_half(out, width, |x| normalised_texel(&table, &row[3 * x..3 * x + 3]));
+        });
+        vertical_half(scratch, cw, height, self);
     }
 
     /// Bilinear sample at subpixel `(x, y)` (pixel centres at integers), or `None` when the
@@ -151,39 +148,94 @@ impl ColourImage {
     pub fn downsample_into(&self, dst: &mut ColourImage, scratch: &mut Vec<Rgba>) {
         use rayon::prelude::*;
         let (w, h) = (self.width, self.height);
-        let (cw, ch) = (w.div_ceil(2).max(1), h.div_ceil(2).max(1));
-        dst.resize(cw, ch);
+        let cw = w.div_ceil(2).max(1);
         scratch.clear();
         scratch.resize(cw * h, [0.0; 4]);
-        const TAPS: [f32; 4] = [0.125, 0.375, 0.375, 0.125];
-        let clamp = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
-        scratch.par_chunks_mut(cw).zip(self.pixels.par_chunks(w)).for_each(|(out, row)| {
-            for (cx, o) in out.iter_mut().enumerate() {
-                let mut acc = [0.0f32; 4];
-                for (t, weight) in TAPS.iter().enumerate() {
-                    let p = row[clamp(2 * cx as isize - 1 + t as isize, w)];
-                    for k in 0..4 {
-                        acc[k] += weight * p[k];
-                    }
-                }
-                *o = acc;
-            }
+        scratch.par_chunks_mut(cw).zip(self.pixels.par_chunks(w.max(1))).for_each(|(out, row)| {
+            horizontal_half(out, w, |x| row[x]);
         });
-        let scratch = &*scratch;
-        dst.pixels.par_chunks_mut(cw).enumerate().for_each(|(cy, out)| {
-            let rows: [usize; 4] = std::array::from_fn(|t| clamp(2 * cy as isize - 1 + t as isize, h) * cw);
-            for (cx, o) in out.iter_mut().enumerate() {
-                let mut acc = [0.0f32; 4];
-                for (t, weight) in TAPS.iter().enumerate() {
-                    let p = scratch[rows[t] + cx];
-                    for k in 0..4 {
-                        acc[k] += weight * p[k];
-                    }
-                }
-                *o = acc;
-            }
-        });
+        vertical_half(scratch, cw, h, dst);
     }
+}
+
+/// Taps of the [1 3 3 1]/8 filter that halves an image.
+const HALF_TAPS: [f32; 4] = [0.125, 0.375, 0.375, 0.125];
+
+#[inline(always)]
+fn clamp_index(v: isize, n: usize) -> usize {
+    v.clamp(0, n as isize - 1) as usize
+}
+
+/// The horizontal pass of halving: `out[cx]` filters texels `2cx - 1 ..= 2cx + 2` of a row
+/// `width` wide (clamped at its ends), each given by `texel`.
+#[inline(always)]
+fn horizontal_half(out: &mut [Rgba], width: usize, texel: impl Fn(usize) -> Rgba) {
+    for (cx, o) in out.iter_mut().enumerate() {
+        let mut acc = [0.0f32; 4];
+        for (t, weight) in HALF_TAPS.iter().enumerate() {
+            let p = texel(clamp_index(2 * cx as isize - 1 + t as isize, width));
+            for k in 0..4 {
+                acc[k] += weight * p[k];
+            }
+        }
+        *o = acc;
+    }
+}
+
+/// The vertical pass of halving: `scratch` holds `height` horizontally halved rows of
+/// `cw` texels; `dst` becomes `cw` x `ceil(height / 2)`.
+fn vertical_half(scratch: &[Rgba], cw: usize, height: usize, dst: &mut ColourImage) {
+    use rayon::prelude::*;
+    dst.resize(cw, height.div_ceil(2).max(1));
+    dst.pixels.par_chunks_mut(cw).enumerate().for_each(|(cy, out)| {
+        let rows: [usize; 4] = std::array::from_fn(|t| clamp_index(2 * cy as isize - 1 + t as isize, height) * cw);
+        for (cx, o) in out.iter_mut().enumerate() {
+            let mut acc = [0.0f32; 4];
+            for (t, weight) in HALF_TAPS.iter().enumerate() {
+                let p = scratch[rows[t] + cx];
+                for k in 0..4 {
+                    acc[k] += weight * p[k];
+                }
+            }
+            *o = acc;
+        }
+    });
+}
+
+/// Per channel, the normalised value of each of the 256 levels: zero mean per channel and
+/// unit variance over all channels of the whole image (a flat image is left at zero mean,
+/// unscaled). One table lookup per pixel instead of a subtraction and a product.
+fn normalisation_table(width: usize, height: usize, rgb: &[u8]) -> [[f32; 256]; 3] {
+    use rayon::prelude::*;
+    let n = (width * height).max(1) as f64;
+    // Exact integer sums, rows in parallel.
+    let row_bytes = (width * 3).max(1);
+    let (sum, sum_sq) = rgb
+        .par_chunks(row_bytes)
+        .map(|row| {
+            let (mut s, mut q) = ([0u64; 3], [0u64; 3]);
+            for px in row.chunks_exact(3) {
+                for c in 0..3 {
+                    let v = u64::from(px[c]);
+                    s[c] += v;
+                    q[c] += v * v;
+                }
+            }
+            (s, q)
+        })
+        .reduce(
+            || ([0u64; 3], [0u64; 3]),
+            |(a, b), (c, d)| (std::array::from_fn(|k| a[k] + c[k]), std::array::from_fn(|k| b[k] + d[k])),
+        );
+    let mean = sum.map(|s| s as f64 / n);
+    let variance: f64 = (0..3).map(|c| sum_sq[c] as f64 / n - mean[c] * mean[c]).sum::<f64>() / 3.0;
+    let scale = if variance > 1e-9 { 1.0 / variance.sqrt() } else { 1.0 };
+    std::array::from_fn(|c| std::array::from_fn(|v| ((v as f64 - mean[c]) * scale) as f32))
+}
+
+#[inline(always)]
+fn normalised_texel(table: &[[f32; 256]; 3], px: &[u8]) -> Rgba {
+    [table[0][usize::from(px[0])], table[1][usize::from(px[1])], table[2][usize::from(px[2])], 0.0]
 }
 
 /// A coarse-to-fine stack: level 0 is full resolution, each further level half the size.
@@ -211,7 +263,8 @@ pub struct LocalNormalisation {
 impl Pyramid {
     /// Rebuilds the pyramid from RGB8 in place (buffers are reused across frames), with
     /// matching levels when `local` is given, from level `matching_from` up (finer matching
-    /// levels are left empty: an engine estimating only coarser levels never reads them).
+    /// levels are left empty: an engine estimating only coarser levels never reads them; for
+    /// the same reason a `matching_from` of 1 or more leaves colour level 0 empty too).
     pub fn rebuild(
         &mut self,
         width: usize,
@@ -223,8 +276,17 @@ impl Pyramid {
     ) {
         let levels = levels.max(1);
         self.levels.resize_with(levels, ColourImage::default);
-        self.levels[0].set_normalised_from_rgb8(width, height, rgb);
-        for l in 1..levels {
+        // Nothing reads a level finer than the first matched one: when that is level 1 or
+        // coarser, level 0 is left empty and level 1 is built straight from the bytes.
+        let first = if matching_from >= 1 && levels >= 2 {
+            self.levels[0].resize(0, 0);
+            self.levels[1].set_normalised_half_from_rgb8(width, height, rgb, &mut self.scratch);
+            2
+        } else {
+            self.levels[0].set_normalised_from_rgb8(width, height, rgb);
+            1
+        };
+        for l in first..levels {
             let (finer, coarser) = self.levels.split_at_mut(l);
             finer[l - 1].downsample_into(&mut coarser[0], &mut self.scratch);
         }
@@ -403,6 +465,21 @@ mod tests {
         }
         // Mean removed: the +5 offset of the red channel is gone.
         assert!(left[0].abs() < 2.0);
+    }
+
+    #[test]
+    fn the_half_resolution_build_equals_normalising_then_halving() {
+        // Odd and even sizes, so both clamped borders are exercised.
+        for (w, h) in [(7, 5), (8, 6), (1, 1), (2, 3)] {
+            let rgb: Vec<u8> = (0..w * h * 3).map(|i| ((i * 37 + i / 5 * 11) % 256) as u8).collect();
+            let mut full = ColourImage::default();
+            full.set_normalised_from_rgb8(w, h, &rgb);
+            let (mut halved, mut direct, mut scratch) = (ColourImage::default(), ColourImage::default(), Vec::new());
+            full.downsample_into(&mut halved, &mut scratch);
+            direct.set_normalised_half_from_rgb8(w, h, &rgb, &mut scratch);
+            assert_eq!((direct.width(), direct.height()), (halved.width(), halved.height()), "{w}x{h}");
+            assert_eq!(direct.pixels(), halved.pixels(), "{w}x{h}: the same values, bit for bit");
+        }
     }
 
     #[test]
