@@ -83,7 +83,7 @@ pub fn track_recording(
     // Three threads beside the engine's pool, as the services run in processes of their
     // own: frames are decoded one ahead, faces are detected inside the flow stream, and
     // each estimate is clustered while the engine works on the next frame (EM would
-    // otherwise leave a core idle for its ~5 ms every frame).
+    // otherwise leave a core idle for its few milliseconds every frame).
     std::thread::scope(|scope| -> Result<()> {
         let (frame_tx, frame_rx) = std::sync::mpsc::sync_channel::<Result<Vec<u8>>>(2);
         let (spare_tx, spare_rx) = std::sync::mpsc::channel::<Vec<u8>>();

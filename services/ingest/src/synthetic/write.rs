@@ -71,10 +71,10 @@ pub fn write_recording(renderer: &Renderer, out: &Path, frames: u32) -> Result<(
         rig.cameras.par_iter().enumerate().try_for_each(|(c, cam)| {
             let view = &rgb[c * renderer.view_len()..(c + 1) * renderer.view_len()];
             let path = out.join(&cam.name).join(&name);
-            image::save_buffer(&path, view, w, h, image::ColorType::Rgb8).map_err(|e| io(&path, e.to_string()))?;
+            write_png(&path, view, w, h, image::ExtendedColorType::Rgb8)?;
             let mask = &masks[c * (w * h) as usize..(c + 1) * (w * h) as usize];
             let path = out.join(MASKS_DIR).join(&cam.name).join(&name);
-            image::save_buffer(&path, mask, w, h, image::ColorType::L8).map_err(|e| io(&path, e.to_string()))
+            write_png(&path, mask, w, h, image::ExtendedColorType::L8)
         })?;
     }
     std::fs::write(out.join(FRAMES_FILE), csv).map_err(|e| io(&out.join(FRAMES_FILE), e.to_string()))?;
@@ -96,6 +96,23 @@ pub fn write_recording(renderer: &Renderer, out: &Path, frames: u32) -> Result<(
     };
     let json = serde_json::to_string(&file).map_err(|e| io(&out.join(TRUTH_FILE), e.to_string()))?;
     std::fs::write(out.join(TRUTH_FILE), json).map_err(|e| io(&out.join(TRUTH_FILE), e.to_string()))
+}
+
+/// Writes one PNG with fast compression and the Up filter: replaying a recording decodes
+/// every frame, and such files decode 1.8x faster than the encoder's default (measured on
+/// signer-3cam; the same pixels, files 3 % larger: sensor noise leaves little to compress).
+/// Without a filter they decode 5x faster but are as large as the raw frames.
+fn write_png(path: &Path, bytes: &[u8], w: u32, h: u32, colour: image::ExtendedColorType) -> Result<(), WriteError> {
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    use image::ImageEncoder;
+    let io = |error: String| WriteError::Io { path: path.to_path_buf(), error };
+    let file = std::fs::File::create(path).map_err(|e| io(e.to_string()))?;
+    let mut out = std::io::BufWriter::new(file);
+    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Up)
+        .write_image(bytes, w, h, colour)
+        .map_err(|e| io(e.to_string()))?;
+    // Flushed here, so a full disk is an error rather than lost silently on drop.
+    std::io::Write::flush(&mut out).map_err(|e| io(e.to_string()))
 }
 
 #[cfg(test)]
