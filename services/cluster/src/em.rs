@@ -24,8 +24,8 @@ pub struct EmConfig {
     /// (default 0.01): covariances never become singular, even for a cluster of one point.
     pub min_std: f64,
     /// Largest standard deviation of the starting components in every dimension, metres in
-    /// the scaled space (default 0.05, about the spread of a hand's points): each component starts on the points
-    /// near its initial mean. Starting with the spread of the whole scene instead (clutter
+    /// the scaled space (default 0.05, about the spread of a hand's points): each component
+    /// starts on the points near its initial mean. Starting with the spread of the whole scene instead (clutter
     /// metres away included) made the components nearly identical at first, and two hands
     /// 25 cm apart could end up in one component while the other wandered off to the neck.
     pub start_std: f64,

@@ -49,11 +49,16 @@ pub struct FusedFaces {
     pub transferred: Vec<bool>,
     /// Detections dropped because no other view agreed with them.
     pub rejected: usize,
-    /// Face centre in the world, when two or more views agreed (or one view agreed with a
-    /// remembered face).
-    pub centre: Option<[f64; 3]>,
-    /// The face in 3D, to remember for the next round.
+    /// The face in 3D, when two or more views agreed (or one view agreed with a remembered
+    /// face): to remember for the next round.
     pub known: Option<KnownFace>,
+}
+
+impl FusedFaces {
+    /// Face centre in the world, world metres, when the face was placed in 3D.
+    pub fn centre(&self) -> Option<[f64; 3]> {
+        self.known.map(|k| k.centre)
+    }
 }
 
 /// Fuses per-camera detections (`detections[c]` for `cameras[c]`, all of one frame set).
@@ -73,7 +78,6 @@ pub fn fuse_faces_remembering(
         boxes: vec![None; cameras.len()],
         transferred: vec![false; cameras.len()],
         rejected: 0,
-        centre: None,
         known: None,
     };
     if cameras.len() != detections.len() {
@@ -104,9 +108,7 @@ pub fn fuse_faces_remembering(
         }
         let used = best.support.iter().filter(|s| s.is_some()).count();
         out.rejected = total - used;
-        let centre = [best.centre.x, best.centre.y, best.centre.z];
-        out.centre = Some(centre);
-        out.known = Some(KnownFace { centre, width_m: best.width_m });
+        out.known = Some(KnownFace { centre: [best.centre.x, best.centre.y, best.centre.z], width_m: best.width_m });
         return out;
     }
     // No two views agree: a lone camera, or only one camera sees the face frontally. Keep
@@ -306,7 +308,7 @@ mod tests {
         let fused = fuse_faces(&cams, &dets);
         assert_eq!(fused.rejected, 0);
         assert_eq!(fused.transferred, vec![false, false, true]);
-        let c = fused.centre.unwrap();
+        let c = fused.centre().unwrap();
         assert!((Point3::from(c) - face).norm() < 0.01, "{c:?}");
         let lent = fused.boxes[2].unwrap();
         let expected = project_face(&cams[2], &face, 0.15).unwrap();
@@ -319,7 +321,7 @@ mod tests {
         let face = Point3::new(0.0, 0.3, 0.1);
         let dets = vec![vec![face_in(&cams[0], &face, 0.15, 3.0)], vec![face_in(&cams[1], &face, 0.15, 9.0)], vec![]];
         let fused = fuse_faces(&cams, &dets);
-        assert!(fused.centre.is_some());
+        assert!(fused.centre().is_some());
         assert_eq!(fused.boxes[2], None);
         assert!(!fused.transferred[2]);
     }
@@ -359,7 +361,7 @@ mod tests {
         let face = Point3::new(0.0, 0.3, 0.0);
         let dets = vec![vec![face_in(&cams[0], &face, 0.15, 3.0)], vec![face_in(&cams[1], &face, 0.40, 3.0)]];
         let fused = fuse_faces(&cams, &dets);
-        assert!(fused.centre.is_none());
+        assert!(fused.centre().is_none());
         assert_eq!(fused.rejected, 2);
     }
 
@@ -374,7 +376,7 @@ mod tests {
         assert_eq!(fuse_faces(&cams, &dets).boxes, vec![None, None, None], "weak and alone: dropped");
         let fused = fuse_faces_remembering(&cams, &dets, Some(&known));
         assert_eq!(fused.transferred, vec![true, false, true]);
-        let c = Point3::from(fused.centre.unwrap());
+        let c = Point3::from(fused.centre().unwrap());
         assert!((c - now).norm() < 0.01, "{c:?}");
         let lent = fused.boxes[2].unwrap();
         let expected = project_face(&cams[2], &now, 0.15).unwrap();
