@@ -1008,7 +1008,7 @@ impl SkinTerm<'_> {
     /// The reference view is left out: it sees the same pixel for every hypothesis of a
     /// ray, so it cannot change their relative weights. Views the point falls outside of
     /// say nothing.
-    #[inline]
+    #[inline(always)]
     fn log_weight(&self, pos: [f32; 3]) -> f32 {
         let (mut h, mut worst, mut seen) = (0.0, f32::INFINITY, 0);
         for (q, ((map, proj), cam)) in self.maps.iter().zip(self.projections).zip(self.cameras).enumerate() {
@@ -1033,6 +1033,27 @@ impl SkinTerm<'_> {
     }
 }
 
+crate::isa::vectorised_fn! {
+    /// One update of a ray holding particles, in the variant's formulation. Dispatched per
+    /// occupied ray: the CPU check is a cached load against microseconds of matching.
+    fn update_occupied_ray(
+        ctx: &IterationContext<'_>,
+        ray: usize,
+        particles: &mut [Particle],
+        count: &mut u8,
+        scan: Option<Particle>,
+        best: &mut Particle,
+        estimate: &mut RayEstimate,
+    ) -> u64 {
+        let have = usize::from(*count);
+        let mut rng = RayRng::for_item(ctx.config.seed, ctx.frame, ctx.stage, ray as u64);
+        match ctx.config.variant {
+            Variant::Paper => ctx.update_ray_paper(ray, &mut particles[..have], best, estimate, &mut rng),
+            Variant::Handflow => ctx.update_ray_handflow(ray, particles, count, scan, best, estimate, &mut rng),
+        }
+    }
+}
+
 /// Candidates a ray weighs per iteration: its particles, four neighbours' best, exploration.
 const MAX_CANDIDATES: usize = MAX_PARTICLES_PER_RAY + 8;
 
@@ -1054,15 +1075,12 @@ impl IterationContext<'_> {
             }
             return 0;
         }
-        let mut rng = RayRng::for_item(self.config.seed, self.frame, self.stage, ray as u64);
-        match self.config.variant {
-            Variant::Paper => self.update_ray_paper(ray, &mut particles[..have], best, estimate, &mut rng),
-            Variant::Handflow => self.update_ray_handflow(ray, particles, count, scan, best, estimate, &mut rng),
-        }
+        update_occupied_ray(self, ray, particles, count, scan, best, estimate)
     }
 
     /// The paper: diffuse every particle, weight by equation 5 (the average of the
     /// normalised likelihood and the previous weight), resample the ray.
+    #[inline(always)]
     fn update_ray_paper(
         &self,
         ray: usize,
@@ -1127,6 +1145,7 @@ impl IterationContext<'_> {
     /// cost and the velocity prior; the ray keeps N of them by systematic resampling, always
     /// including the best.
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     fn update_ray_handflow(
         &self,
         ray: usize,
@@ -1270,6 +1289,7 @@ impl IterationContext<'_> {
 /// The weighted mean of a ray's particles (the note on the prototype found it beats the
 /// single best particle). With `mode` given, only particles within about a pixel of that
 /// particle take part, so two separated modes are not averaged into a point between them.
+#[inline(always)]
 fn weighted_mean(particles: &[Particle], weights: &[f32], mode: Option<&Particle>, confidence: f32) -> RayEstimate {
     let mut sum_w = 0.0f32;
     let mut inverse = 0.0f32;

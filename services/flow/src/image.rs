@@ -64,11 +64,10 @@ impl ColourImage {
         self.resize(width, height);
         let table = normalisation_table(width, height, rgb);
         let row_bytes = (width * 3).max(1);
-        self.pixels.par_chunks_mut(width.max(1)).zip(rgb.par_chunks(row_bytes)).for_each(|(dst, row)| {
-            for (d, px) in dst.iter_mut().zip(row.chunks_exact(3)) {
-                *d = normalised_texel(&table, px);
-            }
-        });
+        self.pixels
+            .par_chunks_mut(width.max(1))
+            .zip(rgb.par_chunks(row_bytes))
+            .for_each(|(dst, row)| normalised_row(dst, row, &table));
     }
 
     /// What [`ColourImage::set_normalised_from_rgb8`] followed by
@@ -86,9 +85,10 @@ impl ColourImage {
         let cw = width.div_ceil(2);
         scratch.clear();
         scratch.resize(cw * height, [0.0; 4]);
-        scratch.par_chunks_mut(cw).zip(rgb.par_chunks(width * 3)).for_each(|(out, row)| {
-            horizontal_half(out, width, |x| normalised_texel(&table, &row[3 * x..3 * x + 3]));
-        });
+        scratch
+            .par_chunks_mut(cw)
+            .zip(rgb.par_chunks(width * 3))
+            .for_each(|(out, row)| normalised_half_row(out, row, width, &table));
         vertical_half(scratch, cw, height, self);
     }
 
@@ -151,9 +151,7 @@ impl ColourImage {
         let cw = w.div_ceil(2).max(1);
         scratch.clear();
         scratch.resize(cw * h, [0.0; 4]);
-        scratch.par_chunks_mut(cw).zip(self.pixels.par_chunks(w.max(1))).for_each(|(out, row)| {
-            horizontal_half(out, w, |x| row[x]);
-        });
+        scratch.par_chunks_mut(cw).zip(self.pixels.par_chunks(w.max(1))).for_each(|(out, row)| half_row(out, row));
         vertical_half(scratch, cw, h, dst);
     }
 }
@@ -182,6 +180,29 @@ fn horizontal_half(out: &mut [Rgba], width: usize, texel: impl Fn(usize) -> Rgba
     }
 }
 
+crate::isa::vectorised_fn! {
+    /// One row of normalised texels from interleaved RGB8.
+    fn normalised_row(out: &mut [Rgba], rgb: &[u8], table: &[[f32; 256]; 3]) {
+        for (d, px) in out.iter_mut().zip(rgb.chunks_exact(3)) {
+            *d = normalised_texel(table, px);
+        }
+    }
+}
+
+crate::isa::vectorised_fn! {
+    /// The horizontal pass of halving one RGB8 row `width` pixels wide, normalised on the way.
+    fn normalised_half_row(out: &mut [Rgba], rgb: &[u8], width: usize, table: &[[f32; 256]; 3]) {
+        horizontal_half(out, width, |x| normalised_texel(table, &rgb[3 * x..3 * x + 3]));
+    }
+}
+
+crate::isa::vectorised_fn! {
+    /// The horizontal pass of halving one row of texels.
+    fn half_row(out: &mut [Rgba], row: &[Rgba]) {
+        horizontal_half(out, row.len(), |x| row[x]);
+    }
+}
+
 /// The vertical pass of halving: `scratch` holds `height` horizontally halved rows of
 /// `cw` texels; `dst` becomes `cw` x `ceil(height / 2)`.
 fn vertical_half(scratch: &[Rgba], cw: usize, height: usize, dst: &mut ColourImage) {
@@ -189,6 +210,14 @@ fn vertical_half(scratch: &[Rgba], cw: usize, height: usize, dst: &mut ColourIma
     dst.resize(cw, height.div_ceil(2).max(1));
     dst.pixels.par_chunks_mut(cw).enumerate().for_each(|(cy, out)| {
         let rows: [usize; 4] = std::array::from_fn(|t| clamp_index(2 * cy as isize - 1 + t as isize, height) * cw);
+        vertical_half_row(out, scratch, rows);
+    });
+}
+
+crate::isa::vectorised_fn! {
+    /// One output row of the vertical pass: texels of the four `scratch` rows starting at
+    /// the offsets `rows`, filtered.
+    fn vertical_half_row(out: &mut [Rgba], scratch: &[Rgba], rows: [usize; 4]) {
         for (cx, o) in out.iter_mut().enumerate() {
             let mut acc = [0.0f32; 4];
             for (t, weight) in HALF_TAPS.iter().enumerate() {
@@ -199,7 +228,7 @@ fn vertical_half(scratch: &[Rgba], cw: usize, height: usize, dst: &mut ColourIma
             }
             *o = acc;
         }
-    });
+    }
 }
 
 /// Per channel, the normalised value of each of the 256 levels: zero mean per channel and
@@ -210,27 +239,29 @@ fn normalisation_table(width: usize, height: usize, rgb: &[u8]) -> [[f32; 256]; 
     let n = (width * height).max(1) as f64;
     // Exact integer sums, rows in parallel.
     let row_bytes = (width * 3).max(1);
-    let (sum, sum_sq) = rgb
-        .par_chunks(row_bytes)
-        .map(|row| {
-            let (mut s, mut q) = ([0u64; 3], [0u64; 3]);
-            for px in row.chunks_exact(3) {
-                for c in 0..3 {
-                    let v = u64::from(px[c]);
-                    s[c] += v;
-                    q[c] += v * v;
-                }
-            }
-            (s, q)
-        })
-        .reduce(
-            || ([0u64; 3], [0u64; 3]),
-            |(a, b), (c, d)| (std::array::from_fn(|k| a[k] + c[k]), std::array::from_fn(|k| b[k] + d[k])),
-        );
+    let (sum, sum_sq) = rgb.par_chunks(row_bytes).map(channel_sums).reduce(
+        || ([0u64; 3], [0u64; 3]),
+        |(a, b), (c, d)| (std::array::from_fn(|k| a[k] + c[k]), std::array::from_fn(|k| b[k] + d[k])),
+    );
     let mean = sum.map(|s| s as f64 / n);
     let variance: f64 = (0..3).map(|c| sum_sq[c] as f64 / n - mean[c] * mean[c]).sum::<f64>() / 3.0;
     let scale = if variance > 1e-9 { 1.0 / variance.sqrt() } else { 1.0 };
     std::array::from_fn(|c| std::array::from_fn(|v| ((v as f64 - mean[c]) * scale) as f32))
+}
+
+crate::isa::vectorised_fn! {
+    /// Per channel, the sum and the sum of squares of one RGB8 row.
+    fn channel_sums(row: &[u8]) -> ([u64; 3], [u64; 3]) {
+        let (mut s, mut q) = ([0u64; 3], [0u64; 3]);
+        for px in row.chunks_exact(3) {
+            for c in 0..3 {
+                let v = u64::from(px[c]);
+                s[c] += v;
+                q[c] += v * v;
+            }
+        }
+        (s, q)
+    }
 }
 
 #[inline(always)]
@@ -341,41 +372,67 @@ impl ColourImage {
         scratch.clear();
         scratch.resize(w * h, [0.0; 4]);
         let r = params.radius as isize;
-        let clamp = |v: isize, n: usize| v.clamp(0, n as isize - 1) as usize;
-        scratch.par_chunks_mut(w).zip(self.pixels.par_chunks(w)).for_each(|(out, row)| {
-            let mut acc = [0.0f32; 4];
-            for dx in -r..=r {
-                add_with_square(&mut acc, row[clamp(dx, w)], 1.0);
-            }
-            for (x, o) in out.iter_mut().enumerate() {
-                *o = acc;
-                add_with_square(&mut acc, row[clamp(x as isize - r, w)], -1.0);
-                add_with_square(&mut acc, row[clamp(x as isize + r + 1, w)], 1.0);
-            }
-        });
+        scratch.par_chunks_mut(w).zip(self.pixels.par_chunks(w)).for_each(|(out, row)| box_sum_row(out, row, r));
         // Vertical sums row by row into the output row itself (contiguous, no buffer), then
         // normalised in place.
         let area = ((2 * r + 1) * (2 * r + 1)) as f32;
         let floor_sq = params.floor * params.floor;
         let scratch = &*scratch;
         dst.pixels.par_chunks_mut(w).zip(self.pixels.par_chunks(w)).enumerate().for_each(|(y, (out, src))| {
-            out.iter_mut().for_each(|o| *o = [0.0; 4]);
-            for dy in -r..=r {
-                let row = &scratch[clamp(y as isize + dy, h) * w..][..w];
-                for (o, s) in out.iter_mut().zip(row) {
-                    for k in 0..4 {
-                        o[k] += s[k];
-                    }
+            normalised_box_row(out, src, scratch, y, r, area, floor_sq);
+        });
+    }
+}
+
+crate::isa::vectorised_fn! {
+    /// Horizontal box sums of radius `r` along one row, of every channel and (pad lane) of
+    /// the sum of squares over channels; the row's ends are clamped.
+    fn box_sum_row(out: &mut [Rgba], row: &[Rgba], r: isize) {
+        let w = row.len();
+        let clamp = |v: isize| v.clamp(0, w as isize - 1) as usize;
+        let mut acc = [0.0f32; 4];
+        for dx in -r..=r {
+            add_with_square(&mut acc, row[clamp(dx)], 1.0);
+        }
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = acc;
+            add_with_square(&mut acc, row[clamp(x as isize - r)], -1.0);
+            add_with_square(&mut acc, row[clamp(x as isize + r + 1)], 1.0);
+        }
+    }
+}
+
+crate::isa::vectorised_fn! {
+    /// Row `y` of local normalisation: the horizontal box sums (`sums`, rows as wide as
+    /// `src`) of rows `y - r ..= y + r` (clamped) summed into `out`, then `src` normalised
+    /// by the box's mean and deviation.
+    fn normalised_box_row(
+        out: &mut [Rgba],
+        src: &[Rgba],
+        sums: &[Rgba],
+        y: usize,
+        r: isize,
+        area: f32,
+        floor_sq: f32,
+    ) {
+        let w = src.len();
+        let h = sums.len() / w.max(1);
+        out.iter_mut().for_each(|o| *o = [0.0; 4]);
+        for dy in -r..=r {
+            let row = &sums[(y as isize + dy).clamp(0, h as isize - 1) as usize * w..][..w];
+            for (o, s) in out.iter_mut().zip(row) {
+                for k in 0..4 {
+                    o[k] += s[k];
                 }
             }
-            for (o, p) in out.iter_mut().zip(src) {
-                let mean = [o[0] / area, o[1] / area, o[2] / area];
-                let mean_sq = o[3] / (3.0 * area);
-                let var = (mean_sq - (mean[0] * mean[0] + mean[1] * mean[1] + mean[2] * mean[2]) / 3.0).max(0.0);
-                let inv = 1.0 / (var + floor_sq).sqrt();
-                *o = [(p[0] - mean[0]) * inv, (p[1] - mean[1]) * inv, (p[2] - mean[2]) * inv, 0.0];
-            }
-        });
+        }
+        for (o, p) in out.iter_mut().zip(src) {
+            let mean = [o[0] / area, o[1] / area, o[2] / area];
+            let mean_sq = o[3] / (3.0 * area);
+            let var = (mean_sq - (mean[0] * mean[0] + mean[1] * mean[1] + mean[2] * mean[2]) / 3.0).max(0.0);
+            let inv = 1.0 / (var + floor_sq).sqrt();
+            *o = [(p[0] - mean[0]) * inv, (p[1] - mean[1]) * inv, (p[2] - mean[2]) * inv, 0.0];
+        }
     }
 }
 

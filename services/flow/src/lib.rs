@@ -16,6 +16,7 @@ mod engine;
 pub mod face_fusion;
 pub mod faces;
 pub mod image;
+pub mod isa;
 pub mod likelihood;
 pub mod particles;
 pub mod refine;

@@ -30,7 +30,7 @@ pub struct MatchImage<'a> {
 /// the variance of the colours the particle projects to in every image, summed over
 /// channels. Images the point falls outside of do not vote; with fewer than two votes
 /// there is no evidence and the likelihood is that of a maximally inconsistent point.
-#[inline]
+#[inline(always)]
 ///
 /// `reference_colour`, when given, is the colour of the ray's own pixel in the reference
 /// image at t: every particle of the ray projects there, so the caller samples it once per
@@ -125,7 +125,7 @@ impl ReferenceWindow {
 /// point is occluded do not spoil it. Images the point falls outside of do not vote at all:
 /// counting them as mismatches would bias every ray near the border towards hypotheses
 /// that keep their projections inside the frame. With no vote, the cost is the maximum.
-#[inline]
+#[inline(always)]
 pub fn robust_window_cost(
     images: &[MatchImage<'_>],
     reference: &ReferenceWindow,

@@ -45,6 +45,7 @@ pub struct SearchSpace {
 impl SearchSpace {
     /// A particle drawn from the broad initial prior: uniform in inverse depth (uniform in
     /// disparity, where stereo measures), uniform velocity within the bound.
+    #[inline(always)]
     pub fn random_particle(&self, rng: &mut RayRng) -> Particle {
         let inverse = rng.range(self.inverse_depth.0, self.inverse_depth.1);
         let b = self.speed_bound;
@@ -96,6 +97,7 @@ fn reflect(x: f32, lo: f32, hi: f32) -> f32 {
 /// Ray Resampling: draws `out.len()` particles from `candidates` in proportion to
 /// `weights` by systematic resampling (one uniform draw, low variance). Every output gets
 /// weight `1 / out.len()`. Returns false, leaving `out` untouched, if all weights are zero.
+#[inline(always)]
 pub fn ray_resample(candidates: &[Particle], weights: &[f32], out: &mut [Particle], rng: &mut RayRng) -> bool {
     debug_assert_eq!(candidates.len(), weights.len());
     let total: f32 = weights.iter().sum();
