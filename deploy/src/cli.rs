@@ -112,6 +112,10 @@ struct RunArgs {
     /// Publish only the first N frame sets.
     #[arg(long)]
     frames: Option<u64>,
+    /// Decode the recording into memory first, so frame sets are published as raw frames
+    /// (cameras deliver them so) instead of being decoded on the pipeline's path.
+    #[arg(long)]
+    preload: bool,
     /// Prefix of the service names (to run two pipelines side by side).
     #[arg(long)]
     services: Option<String>,
@@ -233,6 +237,10 @@ struct BenchPipelineArgs {
     /// Seconds measured after a 3 s warm-up.
     #[arg(long, default_value_t = 20.0)]
     seconds: f64,
+    /// Decode the recording's images on the pipeline's path (ingest as a PNG reader)
+    /// instead of preloading them (ingest as cameras delivering raw frames, the default).
+    #[arg(long)]
+    decode: bool,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
@@ -461,15 +469,17 @@ fn bench_pipeline(args: &BenchPipelineArgs) -> Result<()> {
         Some(r) => r.clone(),
         None => demo_recording()?,
     };
-    let r = crate::stream_bench::bench_pipeline(&rec, args.seconds)?;
+    let r = crate::stream_bench::bench_pipeline(&rec, args.seconds, !args.decode)?;
     if args.json {
         out!("{}", serde_json::to_string(&r)?);
         return Ok(());
     }
     out!(
-        "live pipeline on `{}` at {:.0} frames/s, {:.1} s measured: {:.1} trajectory samples/s, {} frame sets dropped",
+        "live pipeline on `{}` at {:.0} frames/s ({}), {:.1} s measured: {:.1} trajectory samples/s, {} frame sets \
+         dropped",
         r.recording,
         r.input_fps,
+        if r.preloaded { "preloaded: raw frames" } else { "images decoded on the path" },
         r.seconds,
         r.output_fps,
         r.dropped
@@ -518,6 +528,7 @@ fn run_streaming(args: &RunArgs) -> Result<()> {
         p.pace.clone_from(&args.pace);
     }
     p.looped |= args.looped;
+    p.preload |= args.preload;
     if args.frames.is_some() {
         p.frames = args.frames;
     }

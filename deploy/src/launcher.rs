@@ -48,6 +48,9 @@ pub struct Pipeline {
     pub looped: bool,
     /// Publish only the first N frame sets.
     pub frames: Option<u64>,
+    /// Decode the recording into memory before the run (ingest's `--preload`): frame sets
+    /// are then published as a camera delivers them, without decoding on the path.
+    pub preload: bool,
     /// Prefix of the service names.
     pub services: String,
     /// Engine variant.
@@ -66,6 +69,7 @@ impl Default for Pipeline {
             pace: None,
             looped: false,
             frames: None,
+            preload: false,
             services: ipc::DEFAULT_PREFIX.into(),
             variant: "handflow".into(),
             max_restarts: 5,
@@ -198,6 +202,9 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     }
     if let Some(n) = p.frames {
         ingest_args.extend(["--frames".into(), n.to_string()]);
+    }
+    if p.preload {
+        ingest_args.push("--preload".into());
     }
     let mut publish_args = Vec::new();
     if let Some(out) = &p.out {

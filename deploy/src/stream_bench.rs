@@ -157,6 +157,9 @@ pub struct PipelineResult {
     pub recording: String,
     /// Frame rate the frame sets were published at.
     pub input_fps: f64,
+    /// Whether ingest preloaded the recording (cameras delivering raw frames) rather than
+    /// decoding its images on the path.
+    pub preloaded: bool,
     /// Seconds measured (after the warm-up).
     pub seconds: f64,
     /// Trajectory samples per second over the measured time.
@@ -172,16 +175,17 @@ pub struct PipelineResult {
     pub latency_p99_beyond_fb_ms: f64,
 }
 
-/// Seconds at the start of a live run that are not measured (face-detection warm-up, the
-/// first frame's extra passes).
+/// Seconds after the first trajectory sample that are not measured (face detections that
+/// adapt the skin models, the first frame's extra passes).
 const PIPELINE_WARM_UP_S: f64 = 3.0;
 
-/// Runs the live pipeline on `recording` (looped at its recorded rate) for `seconds` plus
-/// the warm-up and measures its output.
-pub fn bench_pipeline(recording: &std::path::Path, seconds: f64) -> Result<PipelineResult> {
+/// Runs the live pipeline on `recording` (looped at its recorded rate; `preload`: decoded
+/// into memory first) for `seconds` plus the warm-up and measures its output.
+pub fn bench_pipeline(recording: &std::path::Path, seconds: f64, preload: bool) -> Result<PipelineResult> {
     let rec = handflow_ingest::Recording::open(recording)?;
     let fps = rec.frame_rate();
-    let frames = ((seconds + PIPELINE_WARM_UP_S) * fps).ceil() as u64;
+    // One more second of frames: the warm-up counts from the first sample, not the start.
+    let frames = ((seconds + PIPELINE_WARM_UP_S + 1.0) * fps).ceil() as u64;
     let prefix = format!("bench-pipeline-{}", std::process::id());
     let names = ServiceNames::new(&prefix);
     let pipeline = Pipeline {
@@ -189,6 +193,7 @@ pub fn bench_pipeline(recording: &std::path::Path, seconds: f64) -> Result<Pipel
         recording: Some(recording.to_path_buf()),
         looped: true,
         frames: Some(frames),
+        preload,
         services: prefix.clone(),
         ..Pipeline::default()
     };
@@ -196,7 +201,7 @@ pub fn bench_pipeline(recording: &std::path::Path, seconds: f64) -> Result<Pipel
     let input = ipc::trajectories_input(&node, &names, Mode::Live)?;
     let runner = std::thread::spawn(move || run_pipeline(&pipeline));
     let (mut latencies, mut first, mut last) = (Vec::new(), None::<(Instant, u64)>, None::<(Instant, u64, u64)>);
-    let measure_from = Instant::now() + Duration::from_secs_f64(PIPELINE_WARM_UP_S);
+    let mut measure_from = None::<Instant>;
     let mut count = 0u64;
     ipc::serve(&input, Duration::from_millis(100), |s| -> Result<Next> {
         let t = *s.payload();
@@ -204,7 +209,7 @@ pub fn bench_pipeline(recording: &std::path::Path, seconds: f64) -> Result<Pipel
             return Ok(Next::Stop);
         }
         let now = Instant::now();
-        if now < measure_from {
+        if now < *measure_from.get_or_insert(now + Duration::from_secs_f64(PIPELINE_WARM_UP_S)) {
             return Ok(Next::Continue);
         }
         first.get_or_insert((now, t.dropped_frames));
@@ -221,6 +226,7 @@ pub fn bench_pipeline(recording: &std::path::Path, seconds: f64) -> Result<Pipel
     Ok(PipelineResult {
         recording: recording.display().to_string(),
         input_fps: fps,
+        preloaded: preload,
         seconds: measured,
         output_fps: (n - 1) as f64 / measured.max(1e-9),
         dropped: d1 - d0,

@@ -31,6 +31,11 @@ struct Args {
     /// Start again at the first frame after the last, forever.
     #[arg(long = "loop")]
     looped: bool,
+    /// Decode the whole recording into memory before publishing, so a frame set costs one
+    /// copy instead of decoding its images: cameras that deliver raw frames, as real ones
+    /// do (at most 4 GiB of frame sets).
+    #[arg(long, conflicts_with = "preset")]
+    preload: bool,
     /// Publish only the first N frames.
     #[arg(long)]
     frames: Option<u64>,
@@ -98,7 +103,20 @@ fn main() {
 
 fn run(args: Args) -> Result<()> {
     let mut source = match (&args.recording, &args.preset) {
-        (Some(dir), _) => Source::Recording(Recording::open(dir)?),
+        (Some(dir), _) => {
+            let mut recording = Recording::open(dir)?;
+            if args.preload {
+                let started = Instant::now();
+                recording.preload()?;
+                tracing::info!(
+                    "preloaded {} frame sets of `{}` in {:.1} s",
+                    recording.len(),
+                    dir.display(),
+                    started.elapsed().as_secs_f64()
+                );
+            }
+            Source::Recording(recording)
+        }
         (None, Some(name)) => {
             let spec = SceneSpec::preset(name).with_context(|| format!("unknown preset `{name}`"))?;
             let renderer = Renderer::new(&spec).map_err(anyhow::Error::msg)?;
@@ -174,7 +192,8 @@ fn run(args: Args) -> Result<()> {
         if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
             return Ok(());
         }
-        // The moment the frame set is taken: decoding it is part of the pipeline's latency.
+        // The moment the frame set is taken: decoding it (unless preloaded) is part of the
+        // pipeline's latency.
         let capture_unix_ns = ipc::unix_now_ns();
         // Zero-initialised, so the decoder writes into plain bytes; the image is decoded
         // into the shared memory itself.

@@ -146,7 +146,13 @@ pub struct Recording {
     rig: Rig,
     frames: Vec<FrameEntry>,
     truth: Option<PathBuf>,
+    /// Every frame set decoded, back to back, after [`Recording::preload`].
+    decoded: Option<Vec<u8>>,
 }
+
+/// The most [`Recording::preload`] holds in memory: 4 GiB, about 1500 frame sets of three
+/// 640x480 views (50 s at 30 fps).
+pub const PRELOAD_LIMIT_BYTES: usize = 4 << 30;
 
 /// What [`Recording::read_frame_into`] read.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -222,7 +228,7 @@ impl Recording {
             Ok(())
         })?;
         let truth = Some(dir.join(TRUTH_FILE)).filter(|p| p.is_file());
-        Ok(Recording { dir, rig, frames, truth })
+        Ok(Recording { dir, rig, frames, truth, decoded: None })
     }
 
     /// The recording's folder.
@@ -291,8 +297,39 @@ impl Recording {
         self.rig.cameras.iter().map(|c| c.width as usize * c.height as usize * 3).collect()
     }
 
-    /// Decodes replay position `sequence` (frame `sequence % len` when `looped`) into `dst`,
-    /// every camera's view back to back in rig order, cameras decoded in parallel.
+    /// Decodes every frame set into memory now, so that [`Recording::read_frame_into`]
+    /// becomes one copy: fake cameras that deliver raw frames, as real ones do, with no
+    /// decoding on the pipeline's path. Refuses a recording larger than
+    /// [`PRELOAD_LIMIT_BYTES`]; a frame that does not decode is named as when it is read.
+    pub fn preload(&mut self) -> Result<(), RecordingError> {
+        let set_len = self.frame_set_len();
+        let total = set_len.checked_mul(self.frames.len()).filter(|&t| t <= PRELOAD_LIMIT_BYTES);
+        let Some(total) = total else {
+            return Err(RecordingError::Request(format!(
+                "recording `{}`: {} frame sets of {} bytes do not fit the preload limit of {} MiB; replay it \
+                 without preloading",
+                self.dir.display(),
+                self.frames.len(),
+                set_len,
+                PRELOAD_LIMIT_BYTES >> 20
+            )));
+        };
+        let mut decoded = vec![0u8; total];
+        for (index, dst) in decoded.chunks_exact_mut(set_len.max(1)).enumerate() {
+            self.decode_into(index, dst)?;
+        }
+        self.decoded = Some(decoded);
+        Ok(())
+    }
+
+    /// Whether [`Recording::preload`] has run.
+    pub fn is_preloaded(&self) -> bool {
+        self.decoded.is_some()
+    }
+
+    /// Reads replay position `sequence` (frame `sequence % len` when `looped`) into `dst`,
+    /// every camera's view back to back in rig order: copied from memory when preloaded,
+    /// else decoded, cameras in parallel.
     pub fn read_frame_into(&self, sequence: u64, looped: bool, dst: &mut [u8]) -> Result<FrameInfo, RecordingError> {
         let n = self.frames.len() as u64;
         if n == 0 || (!looped && sequence >= n) {
@@ -311,6 +348,16 @@ impl Recording {
         }
         let index = (sequence % n) as usize;
         let pass = sequence / n;
+        match &self.decoded {
+            Some(decoded) => dst.copy_from_slice(&decoded[index * expected..(index + 1) * expected]),
+            None => self.decode_into(index, dst)?,
+        }
+        let entry = &self.frames[index];
+        Ok(FrameInfo { sequence, frame: entry.frame, timestamp: entry.timestamp + pass as f64 * self.loop_period() })
+    }
+
+    /// Decodes frame set `index` into `dst` (its exact size), cameras in parallel.
+    fn decode_into(&self, index: usize, dst: &mut [u8]) -> Result<(), RecordingError> {
         let entry = &self.frames[index];
         let mut views: Vec<&mut [u8]> = Vec::with_capacity(self.rig.cameras.len());
         let mut rest = dst;
@@ -328,7 +375,7 @@ impl Recording {
                 })
             },
         )?;
-        Ok(FrameInfo { sequence, frame: entry.frame, timestamp: entry.timestamp + pass as f64 * self.loop_period() })
+        Ok(())
     }
 
     /// Time shift between loop passes: the duration plus one mean frame interval.
@@ -560,5 +607,26 @@ mod tests {
         assert!(e.contains("camera `right`") && e.contains("frame 1"), "{e}");
         // The other frames still read: nothing already accepted is lost.
         rec.read_frame_into(2, false, &mut buf).expect("frame 2 still reads");
+    }
+
+    #[test]
+    fn a_preloaded_recording_reads_the_same_frame_sets_and_names_a_broken_frame() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        make(tmp.path());
+        let decoding = Recording::open(tmp.path()).expect("opens");
+        let mut preloaded = Recording::open(tmp.path()).expect("opens");
+        preloaded.preload().expect("preloads");
+        assert!(preloaded.is_preloaded() && !decoding.is_preloaded());
+        let (mut a, mut b) = (vec![0u8; decoding.frame_set_len()], vec![1u8; decoding.frame_set_len()]);
+        for sequence in [0, 1, 2, 4, 7] {
+            let expected = decoding.read_frame_into(sequence, true, &mut a).expect("decodes");
+            assert_eq!(preloaded.read_frame_into(sequence, true, &mut b).expect("copies"), expected);
+            assert_eq!(a, b, "replay position {sequence}");
+        }
+        assert!(preloaded.read_frame_into(3, false, &mut b).is_err(), "the end is still the end");
+        let mut broken = Recording::open(tmp.path()).expect("opens");
+        std::fs::write(tmp.path().join("left/000002.png"), b"broken after opening").expect("write");
+        let e = broken.preload().unwrap_err().to_string();
+        assert!(e.contains("camera `left`") && e.contains("frame 2"), "{e}");
     }
 }
