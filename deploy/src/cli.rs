@@ -278,7 +278,7 @@ struct EngineArgs {
     /// Engine variant: `handflow` (default) or `paper` (the published method).
     #[arg(long, default_value = "handflow")]
     variant: Variant,
-    /// Scene Particles per ray (default 10 on a Middlebury scene, 8 on a recording).
+    /// Scene Particles per ray (default 10 on a Middlebury scene, 6 on a recording).
     #[arg(long)]
     particles_per_ray: Option<usize>,
     /// Override any engine configuration field, e.g. `--set propagation=false` (repeatable).
