@@ -190,9 +190,29 @@ crate::isa::vectorised_fn! {
 }
 
 crate::isa::vectorised_fn! {
-    /// The horizontal pass of halving one RGB8 row `width` pixels wide, normalised on the way.
+    /// The horizontal pass of halving one RGB8 row `width` pixels wide, normalised on the way:
+    /// what [`horizontal_half`] computes, bit for bit, but each input pixel is looked up once.
+    /// Output `cx` reads pixels `2cx - 1 ..= 2cx + 2`; the last two are the next output's
+    /// first two, so they are carried over instead of looked up again (the table lookups
+    /// were most of this pass).
     fn normalised_half_row(out: &mut [Rgba], rgb: &[u8], width: usize, table: &[[f32; 256]; 3]) {
-        horizontal_half(out, width, |x| normalised_texel(table, &rgb[3 * x..3 * x + 3]));
+        let texel = |x: isize| {
+            let x = clamp_index(x, width);
+            normalised_texel(table, &rgb[3 * x..3 * x + 3])
+        };
+        let mut carried = [texel(-1), texel(0)];
+        for (cx, o) in out.iter_mut().enumerate() {
+            let next = [texel(2 * cx as isize + 1), texel(2 * cx as isize + 2)];
+            let taps = [carried[0], carried[1], next[0], next[1]];
+            let mut acc = [0.0f32; 4];
+            for (p, weight) in taps.iter().zip(HALF_TAPS) {
+                for k in 0..4 {
+                    acc[k] += weight * p[k];
+                }
+            }
+            *o = acc;
+            carried = next;
+        }
     }
 }
 
