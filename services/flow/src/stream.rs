@@ -29,10 +29,10 @@ pub const STREAM_SPEED_BOUND_M_S: f32 = 3.0;
 pub const WARM_UP_ROUNDS: usize = 3;
 /// Frames between detecting faces on a frame and using the models adapted to them.
 pub const MODEL_LAG: u64 = 5;
-/// Scene Particles per ray on streams: 6 instead of the engine's 10. Every preset and unseen
-/// scene stays on target with 6, as with 8 (some figures a little lower, the hardest scene's
-/// higher), and the engine is 1.15 to 1.28x faster than with 8: what the live pipeline
-/// needed to sustain 30 fps on two cores (BENCHMARKS.md).
+/// Scene Particles per ray on streams: 6 instead of the engine's 10. Every preset stays on
+/// target with 6, as with 8, and so does every unseen scene that was (some figures a little
+/// lower, the hardest scene's higher); the engine is 1.15 to 1.28x faster than with 8: what
+/// the live pipeline needed to sustain 30 fps on two cores (BENCHMARKS.md).
 pub const STREAM_PARTICLES_PER_RAY: usize = 6;
 /// Half-size of the support window on the grids a stream estimates (3x3): a 5x5 window
 /// costs 2.8x as much per evaluation and did not improve the trajectories on any preset
