@@ -179,14 +179,7 @@ pub fn fit_mixture(
         // Second moments are symmetric: only the lower triangle is accumulated.
         let mut acc = vec![(0.0f64, Vector6::<f64>::zeros(), [0.0f64; TRIANGLE]); k];
         for (i, f) in features.iter().enumerate() {
-            let mut outer = [0.0f64; TRIANGLE];
-            let mut t = 0;
-            for r in 0..6 {
-                for c in 0..=r {
-                    outer[t] = f[r] * f[c];
-                    t += 1;
-                }
-            }
+            let outer = LOWER.map(|(r, c)| f[r] * f[c]);
             for (j, (m, first, second)) in acc.iter_mut().enumerate() {
                 let w = weights[i] * resp[i * k + j];
                 *m += w;
@@ -258,16 +251,28 @@ pub fn fit_mixture(
 /// Entries in the lower triangle of a 6x6 matrix.
 const TRIANGLE: usize = 21;
 
-/// The symmetric matrix whose lower triangle is `lower` (row by row).
+/// (row, column) of each entry of the lower triangle of a 6x6 matrix, row by row: the
+/// entries a symmetric matrix is stored by.
+const LOWER: [(usize, usize); TRIANGLE] = {
+    let mut entries = [(0, 0); TRIANGLE];
+    let (mut r, mut t) = (0, 0);
+    while r < 6 {
+        let mut c = 0;
+        while c <= r {
+            entries[t] = (r, c);
+            (c, t) = (c + 1, t + 1);
+        }
+        r += 1;
+    }
+    entries
+};
+
+/// The symmetric matrix whose lower triangle is `lower` (in [`LOWER`]'s order).
 fn symmetric_from_lower(lower: &[f64; TRIANGLE]) -> Matrix6<f64> {
     let mut m = Matrix6::zeros();
-    let mut t = 0;
-    for r in 0..6 {
-        for c in 0..=r {
-            m[(r, c)] = lower[t];
-            m[(c, r)] = lower[t];
-            t += 1;
-        }
+    for (&(r, c), &v) in LOWER.iter().zip(lower) {
+        m[(r, c)] = v;
+        m[(c, r)] = v;
     }
     m
 }

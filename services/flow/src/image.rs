@@ -164,19 +164,25 @@ fn clamp_index(v: isize, n: usize) -> usize {
     v.clamp(0, n as isize - 1) as usize
 }
 
+/// [`HALF_TAPS`] applied to four consecutive texels, summed in tap order (every halving pass
+/// goes through here, so they agree to the bit).
+#[inline(always)]
+fn half_filter(texels: [Rgba; 4]) -> Rgba {
+    let mut acc = [0.0f32; 4];
+    for (p, weight) in texels.iter().zip(HALF_TAPS) {
+        for k in 0..4 {
+            acc[k] += weight * p[k];
+        }
+    }
+    acc
+}
+
 /// The horizontal pass of halving: `out[cx]` filters texels `2cx - 1 ..= 2cx + 2` of a row
 /// `width` wide (clamped at its ends), each given by `texel`.
 #[inline(always)]
 fn horizontal_half(out: &mut [Rgba], width: usize, texel: impl Fn(usize) -> Rgba) {
     for (cx, o) in out.iter_mut().enumerate() {
-        let mut acc = [0.0f32; 4];
-        for (t, weight) in HALF_TAPS.iter().enumerate() {
-            let p = texel(clamp_index(2 * cx as isize - 1 + t as isize, width));
-            for k in 0..4 {
-                acc[k] += weight * p[k];
-            }
-        }
-        *o = acc;
+        *o = half_filter(std::array::from_fn(|t| texel(clamp_index(2 * cx as isize - 1 + t as isize, width))));
     }
 }
 
@@ -203,14 +209,7 @@ crate::isa::vectorised_fn! {
         let mut carried = [texel(-1), texel(0)];
         for (cx, o) in out.iter_mut().enumerate() {
             let next = [texel(2 * cx as isize + 1), texel(2 * cx as isize + 2)];
-            let taps = [carried[0], carried[1], next[0], next[1]];
-            let mut acc = [0.0f32; 4];
-            for (p, weight) in taps.iter().zip(HALF_TAPS) {
-                for k in 0..4 {
-                    acc[k] += weight * p[k];
-                }
-            }
-            *o = acc;
+            *o = half_filter([carried[0], carried[1], next[0], next[1]]);
             carried = next;
         }
     }
@@ -239,14 +238,7 @@ crate::isa::vectorised_fn! {
     /// the offsets `rows`, filtered.
     fn vertical_half_row(out: &mut [Rgba], scratch: &[Rgba], rows: [usize; 4]) {
         for (cx, o) in out.iter_mut().enumerate() {
-            let mut acc = [0.0f32; 4];
-            for (t, weight) in HALF_TAPS.iter().enumerate() {
-                let p = scratch[rows[t] + cx];
-                for k in 0..4 {
-                    acc[k] += weight * p[k];
-                }
-            }
-            *o = acc;
+            *o = half_filter(rows.map(|row| scratch[row + cx]));
         }
     }
 }
