@@ -1,12 +1,12 @@
 //! The Middlebury evaluation end to end on a cropped Teddy: scene folder on disk, the
 //! protocol's problem, the engine, the metrics. Debug builds; the crop keeps it quick.
 
-use handflow::flow_eval::{engine_config, load_problem, run_once, EvalOptions};
-use handflow::middlebury::Layout;
+use handflow::eval::middlebury::Layout;
+use handflow::eval::middlebury_run::{engine_config, load_problem, run_once, EvalOptions};
 use handflow_e2e::cropped_teddy;
 use handflow_flow::Variant;
 
-fn evaluate(layout: Layout, variant: Variant) -> Option<handflow::middlebury::Metrics> {
+fn evaluate(layout: Layout, variant: Variant) -> Option<handflow::eval::middlebury::Metrics> {
     let tmp = tempfile::tempdir().expect("tempdir");
     // The teddy bear and the roof: depth edges, texture and a textureless patch.
     let dir = cropped_teddy(tmp.path(), 130, 90, 200, 150)?;

@@ -13,8 +13,8 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use handflow::track::{track_recording, TrackOptions};
-use handflow::track_eval::{evaluate_tracks, read_tracks};
+use handflow::commands::track::{track_recording, TrackOptions};
+use handflow::eval::tracks::{evaluate_tracks, read_tracks};
 use handflow_e2e::{binaries_dir, pids_of, render_preset, unique_prefix};
 use handflow_ingest::Recording;
 use handflow_protocol::ipc::{self, Mode, ServiceNames};

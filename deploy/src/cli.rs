@@ -9,11 +9,11 @@ use clap::{Args, Parser, Subcommand};
 use handflow_flow::Variant;
 use serde_json::json;
 
-use crate::flow_eval::{engine_config, load_problem, run_once, EvalOptions, RunResult};
-use crate::middlebury::{write_maps, Layout};
-use crate::recording_flow::bench_recording;
-use crate::track::{track_recording, TrackOptions};
-use crate::track_eval::{evaluate_tracks, read_tracks};
+use crate::commands::track::{track_recording, TrackOptions};
+use crate::eval::middlebury::{write_maps, Layout};
+use crate::eval::middlebury_run::{engine_config, load_problem, run_once, EvalOptions, RunResult};
+use crate::eval::tracks::{evaluate_tracks, read_tracks};
+use crate::recording_engine::bench_recording;
 use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec, PRESETS};
 
 /// Where the demo looks for the built-in scene, relative to the working directory.
@@ -51,13 +51,19 @@ enum Command {
     Tap(TapArgs),
     /// The scene-flow demo: both Middlebury Teddy layouts with the default engine.
     FlowDemo,
+    /// Inspect a calibration (any supported format) or convert it to handflow's rig TOML.
+    #[command(subcommand)]
+    Rig(crate::commands::rig::RigCommand),
 }
 
 #[derive(Args, Debug)]
 struct OverlayArgs {
-    /// Recording folder.
+    /// Recording folder (videos or image folders).
     #[arg(long)]
     recording: PathBuf,
+    /// Calibration file to use instead of the recording's own.
+    #[arg(long)]
+    calibration: Option<PathBuf>,
     /// Trajectory file (JSON Lines, as `handflow track` writes).
     #[arg(long)]
     tracks: PathBuf,
@@ -68,7 +74,8 @@ struct OverlayArgs {
 
 #[derive(Args, Debug)]
 struct TrackArgs {
-    /// Recording folder (rig.toml, frames.csv, one image folder per camera).
+    /// Recording folder: one video per camera, or one image folder per camera, with its
+    /// calibration and capture times.
     #[arg(long)]
     recording: PathBuf,
     /// Output file (default: standard output).
@@ -77,14 +84,50 @@ struct TrackArgs {
     /// Write CSV (frame, t, then per object x y z vx vy vz confidence state) instead of JSON Lines.
     #[arg(long)]
     csv: bool,
-    /// Track only the first N frames.
-    #[arg(long)]
-    frames: Option<usize>,
+    #[command(flatten)]
+    part: RecordingArgs,
+    /// The world's up direction `x,y,z`, overriding the calibration's or the estimate from
+    /// the cameras.
+    #[arg(long, value_parser = parse_direction)]
+    up: Option<[f64; 3]>,
     /// Keep cluster centres on the visible surface instead of the objects' middles.
     #[arg(long)]
     no_centre_correction: bool,
     #[command(flatten)]
     engine: EngineArgs,
+}
+
+/// Which calibration and which part of a recording to read.
+#[derive(Args, Debug, Default, Clone)]
+struct RecordingArgs {
+    /// Calibration file to use instead of the recording's own (rig.toml, camera_array.toml,
+    /// or its only calibration file).
+    #[arg(long)]
+    calibration: Option<PathBuf>,
+    /// First frame number to read (seeks in videos).
+    #[arg(long)]
+    start: Option<u64>,
+    /// Read at most N frame sets.
+    #[arg(long)]
+    frames: Option<usize>,
+}
+
+impl RecordingArgs {
+    fn options(&self) -> handflow_ingest::OpenOptions {
+        handflow_ingest::OpenOptions { calibration: self.calibration.clone(), start: self.start, frames: self.frames }
+    }
+}
+
+/// `x,y,z`, not all zero.
+fn parse_direction(text: &str) -> Result<[f64; 3], String> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f64>().map_err(|_| format!("`{v}` is not a number")))
+        .collect::<Result<_, _>>()?;
+    match values[..] {
+        [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) && (x, y, z) != (0.0, 0.0, 0.0) => Ok([x, y, z]),
+        _ => Err(format!("expected a direction `x,y,z` of three finite numbers, not all zero; got `{text}`")),
+    }
 }
 
 #[derive(Args, Debug, Default)]
@@ -122,6 +165,16 @@ struct RunArgs {
     /// Engine variant: handflow or paper.
     #[arg(long)]
     variant: Option<String>,
+    /// Calibration file to use instead of the recording's own.
+    #[arg(long)]
+    calibration: Option<PathBuf>,
+    /// First frame number of the recording to publish (seeks in videos).
+    #[arg(long)]
+    start: Option<u64>,
+    /// The world's up direction `x,y,z`, overriding the calibration's or the estimate from
+    /// the cameras.
+    #[arg(long, value_parser = parse_direction)]
+    up: Option<[f64; 3]>,
 }
 
 #[derive(Args, Debug)]
@@ -168,12 +221,19 @@ enum EvalCommand {
 
 #[derive(Args, Debug)]
 struct EvalTracksArgs {
-    /// Recording folder with truth.json.
+    /// Recording folder (with truth.json unless --reference is given).
     #[arg(long)]
     recording: PathBuf,
     /// Trajectory file (JSON Lines, as `handflow track` writes); default: track now.
     #[arg(long)]
     tracks: Option<PathBuf>,
+    /// Score against another tracker instead of truth.json: a `handflow-reference/1` file,
+    /// or a folder of OpenPose JSON keypoints with one subfolder per camera.
+    #[arg(long)]
+    reference: Option<PathBuf>,
+    /// OpenPose keypoint order (25 keypoints are BODY_25 unless told; 18 are COCO).
+    #[arg(long, value_enum, requires = "reference")]
+    keypoints: Option<crate::eval::openpose::KeypointOrder>,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
@@ -398,9 +458,10 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         None => run_streaming(&RunArgs::default()),
         Some(Command::FlowDemo) => demo(),
+        Some(Command::Rig(command)) => crate::commands::rig::run(&command),
         Some(Command::Run(args)) => run_streaming(&args),
         Some(Command::Tap(args)) => {
-            crate::tap::tap(&args.service, &args.services, args.count, &mut std::io::stdout().lock())
+            crate::commands::tap::tap(&args.service, &args.services, args.count, &mut std::io::stdout().lock())
         }
         Some(Command::Eval(EvalCommand::Middlebury(args))) => eval_middlebury(&args),
         Some(Command::Eval(EvalCommand::Skin(args))) => eval_skin(&args),
@@ -410,7 +471,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(BenchCommand::Cluster(args))) => bench_cluster(&args),
         Some(Command::Bench(BenchCommand::Ipc(args))) => bench_ipc(&args),
         Some(Command::Bench(BenchCommand::IpcReceiver(args))) => {
-            crate::stream_bench::ipc_receiver(&args.services, args.samples)
+            crate::bench::stream::ipc_receiver(&args.services, args.samples)
         }
         Some(Command::Bench(BenchCommand::Pipeline(args))) => bench_pipeline(&args),
         Some(Command::Render(args)) => render(&args),
@@ -421,7 +482,7 @@ fn run(cli: Cli) -> Result<()> {
 }
 
 fn bench_ipc(args: &BenchIpcArgs) -> Result<()> {
-    let results = crate::stream_bench::bench_ipc(args.samples)?;
+    let results = crate::bench::stream::bench_ipc(args.samples)?;
     if args.json {
         out!("{}", serde_json::to_string(&results)?);
         return Ok(());
@@ -469,7 +530,7 @@ fn bench_pipeline(args: &BenchPipelineArgs) -> Result<()> {
         Some(r) => r.clone(),
         None => demo_recording()?,
     };
-    let r = crate::stream_bench::bench_pipeline(&rec, args.seconds, !args.decode)?;
+    let r = crate::bench::stream::bench_pipeline(&rec, args.seconds, !args.decode)?;
     if args.json {
         out!("{}", serde_json::to_string(&r)?);
         return Ok(());
@@ -501,7 +562,7 @@ const DEMO_TRAJECTORIES: &str = "out/signer-3cam-trajectories.jsonl";
 /// (`signer-3cam`, rendered first if need be, replayed through the four processes and
 /// checked against its truth).
 fn run_streaming(args: &RunArgs) -> Result<()> {
-    use crate::launcher::{run_pipeline, Pipeline};
+    use crate::commands::launcher::{run_pipeline, Pipeline};
     let mut p = match &args.pipeline {
         Some(path) => Pipeline::load(path)?,
         None => Pipeline::default(),
@@ -532,6 +593,15 @@ fn run_streaming(args: &RunArgs) -> Result<()> {
     if args.frames.is_some() {
         p.frames = args.frames;
     }
+    if args.start.is_some() {
+        p.start = args.start;
+    }
+    if args.calibration.is_some() {
+        p.calibration.clone_from(&args.calibration);
+    }
+    if args.up.is_some() {
+        p.up = args.up;
+    }
     let demo = p.recording.is_none() && p.preset.is_none();
     if demo {
         let rec = demo_recording()?;
@@ -556,7 +626,8 @@ fn run_streaming(args: &RunArgs) -> Result<()> {
         handflow_protocol::ipc::ServiceNames::new(&p.services).trajectories()
     );
     if let (true, Some(rec)) = (report.completed, &p.recording) {
-        let rec = handflow_ingest::Recording::open(rec)?;
+        let options = handflow_ingest::OpenOptions { calibration: p.calibration.clone(), ..Default::default() };
+        let rec = handflow_ingest::Recording::open_with(rec, &options)?;
         if rec.truth_path().is_some() && out_path.is_file() {
             let s = evaluate_tracks(&rec, &read_tracks(&out_path)?)?;
             out!("against the recording's truth ({} frames, {} identity switches):", s.frames, s.identity_switches);
@@ -816,12 +887,18 @@ fn render(args: &RenderArgs) -> Result<()> {
     Ok(())
 }
 
-fn track_options(engine: &EngineArgs, frames: Option<usize>, centre_correction: bool) -> TrackOptions {
+fn track_options(
+    engine: &EngineArgs,
+    part: &RecordingArgs,
+    up: Option<[f64; 3]>,
+    centre_correction: bool,
+) -> TrackOptions {
     TrackOptions {
         variant: engine.variant,
         particles_per_ray: engine.particles_per_ray,
         overrides: engine.overrides.clone(),
-        max_frames: frames,
+        recording: part.options(),
+        up,
         centre_correction,
     }
 }
@@ -842,7 +919,10 @@ fn progress(done: usize, total: usize) {
 
 fn track(args: &TrackArgs) -> Result<()> {
     use std::io::Write as _;
-    let options = track_options(&args.engine, args.frames, !args.no_centre_correction);
+    let options = track_options(&args.engine, &args.part, args.up, !args.no_centre_correction);
+    // Written as it goes, each record flushed: a failure late in a long recording keeps
+    // every earlier frame.
+    let to_file = args.out.is_some();
     let mut out: Box<dyn std::io::Write> = match &args.out {
         Some(path) => Box::new(std::io::BufWriter::new(
             std::fs::File::create(path).with_context(|| format!("creating `{}`", path.display()))?,
@@ -880,6 +960,9 @@ fn track(args: &TrackArgs) -> Result<()> {
             serde_json::to_writer(&mut out, record)?;
             writeln!(out)?;
         }
+        if to_file {
+            out.flush()?;
+        }
         progress(done, total);
         Ok(())
     })?;
@@ -891,8 +974,12 @@ fn track(args: &TrackArgs) -> Result<()> {
         "tracked"
     );
     if let Some(path) = &args.out {
+        let skipped = match summary.skipped_frames {
+            0 => String::new(),
+            n => format!(" ({n} unreadable frame sets skipped)"),
+        };
         eprintln!(
-            "tracked {} frames of `{}` at {:.1} frames per second into `{}`",
+            "tracked {} frames of `{}` at {:.1} frames per second into `{}`{skipped}",
             summary.frames,
             args.recording.display(),
             summary.frames_per_second,
@@ -904,7 +991,7 @@ fn track(args: &TrackArgs) -> Result<()> {
 
 fn bench_cluster(args: &BenchClusterArgs) -> Result<()> {
     anyhow::ensure!(args.points > 0 && args.frames > 0, "--points and --frames must be at least 1");
-    let r = crate::cluster_bench::bench_cluster(args.points, args.frames);
+    let r = crate::bench::cluster::bench_cluster(args.points, args.frames);
     if args.json {
         out!("{}", serde_json::to_string(&r)?);
         return Ok(());
@@ -922,9 +1009,10 @@ fn bench_cluster(args: &BenchClusterArgs) -> Result<()> {
 }
 
 fn overlay(args: &OverlayArgs) -> Result<()> {
-    let rec = handflow_ingest::Recording::open(&args.recording)?;
+    let options = handflow_ingest::OpenOptions { calibration: args.calibration.clone(), ..Default::default() };
+    let rec = handflow_ingest::Recording::open_with(&args.recording, &options)?;
     let records = read_tracks(&args.tracks)?;
-    let written = crate::overlay::write_overlays(&rec, &records, &args.out)?;
+    let written = crate::commands::overlay::write_overlays(&rec, &records, &args.out)?;
     out!("wrote {written} images into `{}` (one folder per camera)", args.out.display());
     Ok(())
 }
@@ -935,7 +1023,7 @@ fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
         Some(path) => read_tracks(path)?,
         None => {
             let mut records = Vec::new();
-            let options = track_options(&args.engine, None, true);
+            let options = track_options(&args.engine, &RecordingArgs::default(), None, true);
             track_recording(&args.recording, &options, |r, done, total| {
                 records.push(r.clone());
                 progress(done, total);
@@ -944,6 +1032,9 @@ fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
             records
         }
     };
+    if let Some(reference) = &args.reference {
+        return eval_tracks_against_reference(args, rec.rig(), &records, reference);
+    }
     let s = evaluate_tracks(&rec, &records)?;
     if args.json {
         out!("{}", serde_json::to_string(&s)?);
@@ -962,6 +1053,61 @@ fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
             o.rms_palm_x,
             o.rms_palm_y,
             o.rmse_3d_m
+        );
+    }
+    Ok(())
+}
+
+/// `eval tracks --reference`: a file is a `handflow-reference/1`, a folder OpenPose keypoints.
+fn eval_tracks_against_reference(
+    args: &EvalTracksArgs,
+    rig: &handflow_protocol::Rig,
+    records: &[handflow_publish::TrajectoryRecord],
+    path: &Path,
+) -> Result<()> {
+    use crate::eval::tracks_reference::evaluate_against_reference;
+    let reference = if path.is_dir() {
+        crate::eval::openpose::read_openpose(path, rig, args.keypoints)?
+    } else {
+        anyhow::ensure!(
+            args.keypoints.is_none(),
+            "--keypoints applies to an OpenPose folder, not to `{}`",
+            path.display()
+        );
+        crate::eval::reference::read_handflow_reference(path, rig)?
+    };
+    let s = evaluate_against_reference(rig, records, &reference);
+    if args.json {
+        out!("{}", serde_json::to_string(&s)?);
+        return Ok(());
+    }
+    let d = &s.reference;
+    out!(
+        "trajectories on `{}` against `{}` ({}: head = {}, hands = {}): {} frames, {} identity switches",
+        args.recording.display(),
+        path.display(),
+        d.format,
+        d.head,
+        d.hands,
+        s.frames,
+        s.identity_switches
+    );
+    let cell =
+        |v: Option<f64>, scale: f64, digits: usize| v.map_or("-".to_owned(), |v| format!("{:.digits$}", v * scale));
+    // `-`: cannot be computed (no frame, no 3D reference; `null` in the JSON).
+    out!("  object        frames misses  agree%   rms_x   rms_y  median_m  <5cm% <10cm% <20cm%");
+    for (name, o) in [("head", &s.head), ("left_hand", &s.left_hand), ("right_hand", &s.right_hand)] {
+        out!(
+            "  {name:<11} {:>6} {:>6} {:>7} {:>7} {:>7} {:>9} {:>6} {:>6} {:>6}",
+            o.frames,
+            o.misses,
+            cell(o.agreement, 100.0, 1),
+            cell(o.rms_palm_x, 1.0, 3),
+            cell(o.rms_palm_y, 1.0, 3),
+            cell(o.median_3d_m, 1.0, 3),
+            cell(o.within_5cm, 100.0, 1),
+            cell(o.within_10cm, 100.0, 1),
+            cell(o.within_20cm, 100.0, 1)
         );
     }
     Ok(())
@@ -1061,7 +1207,7 @@ fn bench_render(args: &BenchRenderArgs) -> Result<()> {
 }
 
 fn eval_skin(args: &SkinArgs) -> Result<()> {
-    let s = crate::skin_eval::evaluate_skin(&args.recording)?;
+    let s = crate::eval::skin::evaluate_skin(&args.recording)?;
     if args.json {
         out!("{}", serde_json::to_string(&s)?);
     } else {

@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use handflow::middlebury::{read_pfm, Scene};
+use handflow::eval::middlebury::{read_pfm, Scene};
 use serde_json::{Map, Value};
 use tempfile::TempDir;
 

@@ -16,4 +16,4 @@ pub mod ipc;
 pub mod messages;
 pub mod rig;
 
-pub use rig::{Camera, Distortion, Ray, Rig, RigError};
+pub use rig::{Camera, Distortion, Ray, Rig, RigError, RigFormat, UpSource, WorldUp};

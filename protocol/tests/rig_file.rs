@@ -159,7 +159,7 @@ fn sample_rig() -> Rig {
         Camera::new(name, 1920, 1080, k, d, Rotation3::new(rodrigues), t).expect("valid")
     })
     .collect();
-    Rig { cameras }
+    Rig::new(cameras)
 }
 
 #[test]
@@ -352,7 +352,7 @@ proptest! {
                 Vector3::new(tx, ty, tz),
             ).expect("valid")
         }).collect();
-        let rig = Rig { cameras };
+        let rig = Rig::new(cameras);
         let back = Rig::from_toml_str(&rig.to_toml_string()).expect("reads back");
         assert_same_rig(&rig, &back);
     }

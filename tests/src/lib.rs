@@ -18,7 +18,7 @@ pub fn teddy_dir() -> Option<PathBuf> {
 /// Writes a `width x height` crop of Teddy at `(x0, y0)` as a scene folder in `dir`.
 pub fn cropped_teddy(dir: &std::path::Path, x0: u32, y0: u32, width: u32, height: u32) -> Option<PathBuf> {
     let teddy = teddy_dir()?;
-    let scene = handflow::middlebury::Scene::load(&teddy).expect("Teddy loads");
+    let scene = handflow::eval::middlebury::Scene::load(&teddy).expect("Teddy loads");
     let crop = scene.crop(x0, y0, width, height).expect("crop inside the image");
     let out = dir.join("teddy-crop");
     crop.save(&out).expect("cropped scene saves");

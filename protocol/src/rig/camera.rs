@@ -155,6 +155,11 @@ pub struct Camera {
     pub rotation: Rotation3<f64>,
     /// World-to-camera translation: `x_cam = R x_world + t`.
     pub translation: Vector3<f64>,
+    /// Clockwise quarter turns (0..=3) that make this camera's raw frames upright: the
+    /// camera is mounted rotated by that much (caliscope's `rotation_count`, taken modulo
+    /// 4). Projection is unaffected (the calibration is of the raw frames); only the
+    /// image's true up, [`Camera::image_up`], depends on it.
+    pub mount_quarter_turns: u8,
 }
 
 impl Camera {
@@ -223,7 +228,35 @@ impl Camera {
             }
         }
 
-        Ok(Camera { name, width, height, matrix, distortion, rotation, translation })
+        Ok(Camera { name, width, height, matrix, distortion, rotation, translation, mount_quarter_turns: 0 })
+    }
+
+    /// This camera mounted by `turns` clockwise quarter turns (taken modulo 4; see
+    /// [`Camera::mount_quarter_turns`]).
+    pub fn with_mount_quarter_turns(mut self, turns: u8) -> Camera {
+        self.mount_quarter_turns = turns % 4;
+        self
+    }
+
+    /// The world direction (unit) that is up in this camera's frames once they are turned
+    /// upright by [`Camera::mount_quarter_turns`].
+    ///
+    /// Raw image up is the camera's `-y` axis (`-`row 1 of `R`). Turning the frame
+    /// clockwise by a quarter brings the raw left edge to the top, so one turn makes up
+    /// `-x`, two `+y`, three `+x`.
+    pub fn image_up(&self) -> Vector3<f64> {
+        let up_in_camera = match self.mount_quarter_turns % 4 {
+            0 => Vector3::new(0.0, -1.0, 0.0),
+            1 => Vector3::new(-1.0, 0.0, 0.0),
+            2 => Vector3::new(0.0, 1.0, 0.0),
+            _ => Vector3::new(1.0, 0.0, 0.0),
+        };
+        self.rotation.inverse() * up_in_camera
+    }
+
+    /// The world direction (unit) the camera looks along: its optical axis, row 2 of `R`.
+    pub fn viewing_direction(&self) -> Vector3<f64> {
+        self.rotation.matrix().row(2).transpose()
     }
 
     /// The camera centre in the world frame, `-Rᵀ t`.

@@ -32,6 +32,21 @@ pub enum RigError {
         /// The TOML type found instead (`integer`, `string`, ...).
         found: String,
     },
+    /// An up direction (declared in a file's `metadata` table or set by the user) is not
+    /// a direction.
+    #[error("up direction: {problem}")]
+    Up {
+        /// What is wrong with it.
+        problem: String,
+    },
+    /// A field of the rig file's `metadata` table has the wrong shape or value.
+    #[error("table `metadata`, field `{field}`: {problem}")]
+    Metadata {
+        /// The field, spelled as in the file (`up`, `up_source`).
+        field: String,
+        /// What is wrong with it.
+        problem: String,
+    },
     /// The rig has no cameras.
     #[error("the rig has no cameras (expected one table per camera, e.g. `[cam_0]`)")]
     NoCameras,
@@ -45,15 +60,49 @@ pub enum RigError {
         /// toml's description of the error.
         message: String,
     },
+    /// The text is not valid in its format (OpenCV YAML or XML).
+    #[error("{format} syntax error at line {line}: {message}")]
+    FormatSyntax {
+        /// `OpenCV YAML` or `OpenCV XML`.
+        format: &'static str,
+        /// 1-based line of the error.
+        line: usize,
+        /// What is wrong.
+        message: String,
+    },
     /// Reading or writing the rig file failed.
     #[error("cannot {action} rig file `{}`: {error}", path.display())]
     Io {
-        /// `read` or `write`.
+        /// `read`, `write` or `list` (a folder).
         action: &'static str,
         /// The file.
         path: PathBuf,
         /// The underlying error.
         error: std::io::Error,
+    },
+    /// A folder has no calibration [`super::Rig::find_in_dir`] can choose.
+    #[error(
+        "no calibration found in `{}`: expected rig.toml, camera_array.toml, a single calibration file \
+         (*.toml, *.yml, *.yaml, *.xml) or OpenCV files one per camera; {}",
+        dir.display(),
+        if found.is_empty() { "found no calibration files".to_owned() } else { format!("found {}", found.join(", ")) }
+    )]
+    NoCalibration {
+        /// The folder.
+        dir: PathBuf,
+        /// What it holds that looks like calibration, each file with its format or why it
+        /// does not fit (`a.toml (anipose/Pose2Sim TOML)`).
+        found: Vec<String>,
+    },
+    /// Two files of one rig define a camera of the same name.
+    #[error("camera `{name}` is defined both in `{}` and in `{}`", first.display(), second.display())]
+    DuplicateCamera {
+        /// The camera's name.
+        name: String,
+        /// The file that defined it first.
+        first: PathBuf,
+        /// The file that defined it again.
+        second: PathBuf,
     },
     /// Any other error, found in the rig file at `path`.
     #[error("rig file `{}`: {error}", path.display())]

@@ -1,6 +1,11 @@
-//! Rig calibration: cameras, their projection model and the rig file format.
+//! Rig calibration: cameras, their projection model and the rig file formats.
 //!
-//! The file format is the one anipose and Pose2Sim write: one TOML table per
+//! [`Rig::load`] reads anipose / Pose2Sim TOML (below, ours), caliscope's
+//! `camera_array.toml` and OpenCV FileStorage YAML and XML, recognised from the content
+//! ([`RigFormat`]); [`Rig::find_in_dir`] picks a folder's calibration. [`Rig::world_up`]
+//! says which way is up and why ([`UpSource`]).
+//!
+//! Our file format is the one anipose and Pose2Sim write: one TOML table per
 //! camera, in rig order, each with `name`, `size = [width, height]`, `matrix`
 //! (3x3 K), `distortions` (`k1 k2 p1 p2 [k3]`; four numbers mean `k3 = 0`),
 //! `rotation` (Rodrigues vector, world to camera; a 3x3 rotation matrix is
@@ -20,7 +25,10 @@
 //! adjusted = false
 //! ```
 //!
-//! A table named `metadata` without a `matrix` is ignored.
+//! A table named `metadata` without a `matrix` holds no camera; its `up = [x, y, z]` (or
+//! `world_up`) declares the world's up, with `up_source = "calibration"` (default) or
+//! `"configured"`. A camera's optional `mount_quarter_turns` (0..=3) is
+//! [`Camera::mount_quarter_turns`].
 //!
 //! ```
 //! use handflow_protocol::Rig;
@@ -41,23 +49,50 @@
 //! # Ok::<(), handflow_protocol::RigError>(())
 //! ```
 
+mod caliscope;
 mod camera;
 mod error;
+mod format;
+mod opencv;
 mod toml_format;
+mod up;
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// The calibration file of a recording folder, in our format.
+pub const RIG_FILE: &str = "rig.toml";
+/// caliscope's calibration file name.
+pub const CALISCOPE_FILE: &str = "camera_array.toml";
+/// File extensions (lower case) [`Rig::find_in_dir`] considers calibration files.
+const CALIBRATION_EXTENSIONS: [&str; 4] = ["toml", "yml", "yaml", "xml"];
 
 pub use camera::{Camera, Distortion, Ray};
 pub use error::RigError;
+pub use format::RigFormat;
+pub use up::{UpSource, WorldUp};
 
 /// The calibrated cameras of a capture rig, in a fixed order.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct Rig {
     /// The cameras, in file order. Names are unique in a rig read from a file.
     pub cameras: Vec<Camera>,
+    /// The world's up when a calibration file or the user states it (source
+    /// [`UpSource::Calibration`] or [`UpSource::Configured`]); `None` lets
+    /// [`Rig::world_up`] estimate it from the cameras.
+    pub declared_up: Option<WorldUp>,
+    /// What loading noticed and did without, for the user (a camera marked ignored and
+    /// left out, ...). Each was also logged as a warning. Not written by
+    /// [`Rig::to_toml_string`].
+    pub notes: Vec<String>,
 }
 
 impl Rig {
+    /// A rig of `cameras`, with no declared up and no notes (not validated: build the
+    /// cameras with [`Camera::new`]).
+    pub fn new(cameras: Vec<Camera>) -> Rig {
+        Rig { cameras, declared_up: None, notes: Vec::new() }
+    }
+
     /// Parses a rig file's text (see the [module documentation](self) for the format).
     ///
     /// Every camera is validated as by [`Camera::new`]; duplicate names, a
@@ -72,15 +107,125 @@ impl Rig {
         toml_format::write(self)
     }
 
-    /// Reads and parses a rig file. Every error names the file.
-    pub fn load(path: impl AsRef<Path>) -> Result<Rig, RigError> {
+    /// Parses calibration text in any format [`Rig::load`] reads, recognised from the
+    /// content ([`RigFormat::sniff`], then caliscope's `[cameras.N]` layout told from
+    /// anipose's). An OpenCV file of one camera without a `name` entry names it
+    /// `file_stem`.
+    pub fn from_str_detect(text: &str, file_stem: &str) -> Result<(Rig, RigFormat), RigError> {
+        match RigFormat::sniff(text) {
+            RigFormat::OpenCvYaml => opencv::parse_yaml_rig(text, file_stem).map(|rig| (rig, RigFormat::OpenCvYaml)),
+            RigFormat::OpenCvXml => opencv::parse_xml_rig(text, file_stem).map(|rig| (rig, RigFormat::OpenCvXml)),
+            RigFormat::AniposeToml | RigFormat::Caliscope => toml_format::parse_detect(text),
+        }
+    }
+
+    /// Reads a calibration file in any supported format (see [`Rig::from_str_detect`])
+    /// and says which it was. Every error names the file; notes (ignored cameras) are
+    /// logged as warnings and kept in [`Rig::notes`].
+    pub fn load_detected(path: impl AsRef<Path>) -> Result<(Rig, RigFormat), RigError> {
         let path = path.as_ref();
         let text = std::fs::read_to_string(path).map_err(|error| RigError::Io {
             action: "read",
             path: path.to_owned(),
             error,
         })?;
-        Rig::from_toml_str(&text).map_err(|error| RigError::InFile { path: path.to_owned(), error: Box::new(error) })
+        let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        Rig::from_str_detect(&text, &stem)
+            .map_err(|error| RigError::InFile { path: path.to_owned(), error: Box::new(error) })
+    }
+
+    /// Reads a calibration file in any supported format: the anipose / Pose2Sim TOML,
+    /// caliscope's `camera_array.toml`, or OpenCV FileStorage YAML or XML. Every error
+    /// names the file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Rig, RigError> {
+        Rig::load_detected(path).map(|(rig, _)| rig)
+    }
+
+    /// Reads the cameras of several calibration files into one rig, in the order of
+    /// `paths` (typically OpenCV files of one camera each, named by their stems). The
+    /// first declared up wins; a camera name used twice is an error naming both files.
+    pub fn load_files(paths: &[PathBuf]) -> Result<Rig, RigError> {
+        let mut rig = Rig::new(Vec::new());
+        let mut origins: Vec<&PathBuf> = Vec::new();
+        for path in paths {
+            let part = Rig::load(path)?;
+            for camera in part.cameras {
+                if let Some(first) = rig.cameras.iter().position(|c| c.name == camera.name) {
+                    return Err(RigError::DuplicateCamera {
+                        name: camera.name,
+                        first: origins[first].clone(),
+                        second: path.clone(),
+                    });
+                }
+                rig.cameras.push(camera);
+                origins.push(path);
+            }
+            rig.declared_up = rig.declared_up.take().or(part.declared_up);
+            rig.notes.extend(part.notes);
+        }
+        if rig.cameras.is_empty() {
+            return Err(RigError::NoCameras);
+        }
+        Ok(rig)
+    }
+
+    /// The calibration of a recording folder: `rig.toml`, else `camera_array.toml`
+    /// (caliscope's), else the folder's only calibration file (`*.toml`, `*.yml`,
+    /// `*.yaml`, `*.xml`), else, when every such file is an OpenCV file, all of them (one
+    /// camera each, in name order). Anything else is [`RigError::NoCalibration`] listing
+    /// what was found.
+    pub fn find_in_dir(dir: impl AsRef<Path>) -> Result<Vec<PathBuf>, RigError> {
+        let dir = dir.as_ref();
+        for preferred in [RIG_FILE, CALISCOPE_FILE] {
+            let path = dir.join(preferred);
+            if path.is_file() {
+                return Ok(vec![path]);
+            }
+        }
+        let entries =
+            std::fs::read_dir(dir).map_err(|error| RigError::Io { action: "list", path: dir.to_owned(), error })?;
+        let mut candidates: Vec<PathBuf> = entries
+            .filter_map(Result::ok)
+            .map(|entry| entry.path())
+            .filter(|path| path.is_file())
+            .filter(|path| {
+                let extension = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
+                extension.is_some_and(|e| CALIBRATION_EXTENSIONS.contains(&e.as_str()))
+            })
+            .collect();
+        candidates.sort();
+        if candidates.len() == 1 {
+            return Ok(candidates);
+        }
+        // Several: acceptable only as OpenCV files of one camera each.
+        let formats: Vec<Option<RigFormat>> = candidates
+            .iter()
+            .map(|path| std::fs::read_to_string(path).ok().map(|text| RigFormat::sniff(&text)))
+            .collect();
+        if !candidates.is_empty() && formats.iter().all(|f| f.is_some_and(RigFormat::is_opencv)) {
+            return Ok(candidates);
+        }
+        let found = candidates
+            .iter()
+            .zip(&formats)
+            .map(|(path, format)| {
+                let name = path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+                match format {
+                    Some(RigFormat::AniposeToml) => format!("{name} (TOML)"),
+                    Some(format) => format!("{name} ({format})"),
+                    None => format!("{name} (unreadable)"),
+                }
+            })
+            .collect();
+        Err(RigError::NoCalibration { dir: dir.to_owned(), found })
+    }
+
+    /// [`Rig::find_in_dir`], then [`Rig::load`] or [`Rig::load_files`] on what it found.
+    pub fn load_dir(dir: impl AsRef<Path>) -> Result<Rig, RigError> {
+        match Rig::find_in_dir(dir)?.as_slice() {
+            [one] => Rig::load(one),
+            several => Rig::load_files(several),
+        }
     }
 
     /// Writes [`Self::to_toml_string`] to `path`, replacing any existing file.
@@ -104,6 +249,23 @@ impl Rig {
             .enumerate()
             .max_by(|(_, a), (_, b)| axis(a).dot(&mean).total_cmp(&axis(b).dot(&mean)))
             .map_or(0, |(i, _)| i)
+    }
+
+    /// The world's up and where it came from: the declared one ([`Rig::declared_up`],
+    /// from the calibration file or [`Rig::set_up`]) if any, else estimated from every
+    /// camera's upright image up (see [`UpSource::Estimated`]'s `how`).
+    pub fn world_up(&self) -> WorldUp {
+        match &self.declared_up {
+            Some(up) => up.clone(),
+            None => up::estimate(&self.cameras),
+        }
+    }
+
+    /// Sets the world's up as configured by the user (normalised); it travels with
+    /// [`Rig::to_toml_string`]. Errors on a zero or non-finite vector.
+    pub fn set_up(&mut self, direction: nalgebra::Vector3<f64>) -> Result<(), RigError> {
+        self.declared_up = Some(WorldUp::declared(direction, UpSource::Configured)?);
+        Ok(())
     }
 
     /// The camera called `name`, if any.

@@ -10,7 +10,8 @@ use serde::de::{Deserialize, Deserializer, MapAccess, Visitor};
 use toml::Value;
 
 use super::camera::rotation_problem;
-use super::{Camera, Distortion, Rig, RigError};
+use super::up::unit_up;
+use super::{Camera, Distortion, Rig, RigError, RigFormat, UpSource, WorldUp};
 
 /// Tables with this name and no `matrix` hold calibration metadata, not a camera.
 const METADATA_TABLE: &str = "metadata";
@@ -19,7 +20,7 @@ const METADATA_TABLE: &str = "metadata";
 /// toml's `preserve_order` feature is on; toml's deserializer itself yields
 /// them in document order, so collecting them here keeps the camera order
 /// without changing the feature for the whole workspace.
-struct OrderedRoot(Vec<(String, Value)>);
+pub(super) struct OrderedRoot(pub(super) Vec<(String, Value)>);
 
 impl<'de> Deserialize<'de> for OrderedRoot {
     fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
@@ -43,14 +44,29 @@ impl<'de> Deserialize<'de> for OrderedRoot {
 
 /// Parses a rig file's text.
 pub(crate) fn parse(text: &str) -> Result<Rig, RigError> {
+    parse_detect(text).map(|(rig, _)| rig)
+}
+
+/// Parses a TOML rig file in either layout: caliscope's (a `cameras` table of camera
+/// tables, see [`super::caliscope`]) or anipose's.
+pub(crate) fn parse_detect(text: &str) -> Result<(Rig, RigFormat), RigError> {
     let root: OrderedRoot = toml::from_str(text).map_err(|e| syntax_error(text, &e))?;
+    if super::caliscope::is_caliscope(&root) {
+        return super::caliscope::parse(root).map(|rig| (rig, RigFormat::Caliscope));
+    }
+    parse_anipose(root).map(|rig| (rig, RigFormat::AniposeToml))
+}
+
+fn parse_anipose(root: OrderedRoot) -> Result<Rig, RigError> {
     let mut cameras: Vec<Camera> = Vec::new();
     let mut keys: Vec<String> = Vec::new();
+    let mut declared_up = None;
     for (key, value) in root.0 {
         let Value::Table(table) = value else {
             return Err(RigError::NotATable { key, found: describe(&value) });
         };
         if key == METADATA_TABLE && !table.contains_key("matrix") {
+            declared_up = parse_metadata_up(&table)?;
             continue;
         }
         let camera = parse_camera(&key, &table)?;
@@ -68,11 +84,48 @@ pub(crate) fn parse(text: &str) -> Result<Rig, RigError> {
     if cameras.is_empty() {
         return Err(RigError::NoCameras);
     }
-    Ok(Rig { cameras })
+    Ok(Rig { declared_up, ..Rig::new(cameras) })
+}
+
+/// Keys of the `metadata` table that may state the world's up (ours writes `up`).
+const UP_KEYS: [&str; 2] = ["up", "world_up"];
+
+/// The up a `metadata` table declares, if any: `up` (or `world_up`) as 3 numbers, and
+/// `up_source = "calibration" | "configured"` (default `calibration`), which our writer
+/// emits so that a user's choice stays one across processes.
+fn parse_metadata_up(table: &toml::Table) -> Result<Option<WorldUp>, RigError> {
+    let Some((field, value)) = UP_KEYS.iter().find_map(|key| table.get(*key).map(|v| (*key, v))) else {
+        return Ok(None);
+    };
+    let metadata_error = |field: &str, problem: String| RigError::Metadata { field: field.to_owned(), problem };
+    let v = parse_numbers(value, 3, "expected 3 numbers (x, y, z)").map_err(|p| metadata_error(field, p))?;
+    let direction = unit_up(Vector3::new(v[0], v[1], v[2])).map_err(|p| metadata_error(field, p))?;
+    let source = match table.get("up_source") {
+        None => UpSource::Calibration,
+        Some(Value::String(s)) if s == "calibration" => UpSource::Calibration,
+        Some(Value::String(s)) if s == "configured" => UpSource::Configured,
+        Some(other) => {
+            return Err(metadata_error(
+                "up_source",
+                format!("expected \"calibration\" or \"configured\", found {}", describe(other)),
+            ))
+        }
+    };
+    Ok(Some(WorldUp { direction, source }))
+}
+
+/// An optional quarter-turn count: an integer, taken modulo 4 (caliscope writes -3..=3).
+pub(super) fn parse_quarter_turns(value: Option<&Value>) -> Result<u8, String> {
+    match value {
+        None => Ok(0),
+        // rem_euclid(4) is in 0..4, so the cast is exact.
+        Some(Value::Integer(i)) => Ok(i.rem_euclid(4) as u8),
+        Some(other) => Err(format!("expected an integer number of quarter turns, found {}", describe(other))),
+    }
 }
 
 /// Turns toml's error into [`RigError::Syntax`] with a 1-based line and column.
-fn syntax_error(text: &str, error: &toml::de::Error) -> RigError {
+pub(super) fn syntax_error(text: &str, error: &toml::de::Error) -> RigError {
     let before = error.span().and_then(|span| text.get(..span.start));
     let (line, column) = match before {
         Some(before) => {
@@ -86,13 +139,13 @@ fn syntax_error(text: &str, error: &toml::de::Error) -> RigError {
 }
 
 /// Where a problem is: the camera table's key and, once read, its name.
-struct Context<'a> {
-    key: &'a str,
-    name: Option<&'a str>,
+pub(super) struct Context<'a> {
+    pub(super) key: &'a str,
+    pub(super) name: Option<&'a str>,
 }
 
 impl Context<'_> {
-    fn error(&self, field: &str, problem: impl Into<String>) -> RigError {
+    pub(super) fn error(&self, field: &str, problem: impl Into<String>) -> RigError {
         RigError::Field {
             camera: self.key.to_owned(),
             name: self.name.map(str::to_owned),
@@ -109,6 +162,18 @@ fn parse_camera(key: &str, table: &toml::Table) -> Result<Camera, RigError> {
         Some(other) => return Err(context.error("name", format!("expected a string, found {}", describe(other)))),
         None => return Err(context.error("name", "missing")),
     };
+    camera_from_table(key, name, table, MOUNT_KEY)
+}
+
+/// The camera of table `key` named `name`: `size`, `matrix`, `distortions`, `rotation`,
+/// `translation`, optional `fisheye = false` and the optional quarter-turn count
+/// `mount_key`. Shared by the anipose and caliscope layouts, which agree on these fields.
+pub(super) fn camera_from_table(
+    key: &str,
+    name: String,
+    table: &toml::Table,
+    mount_key: &str,
+) -> Result<Camera, RigError> {
     let context = Context { key, name: Some(&name) };
     let get = |field: &str| table.get(field).ok_or_else(|| context.error(field, "missing"));
 
@@ -134,15 +199,23 @@ fn parse_camera(key: &str, table: &toml::Table) -> Result<Camera, RigError> {
         .map(|v| Vector3::new(v[0], v[1], v[2]))
         .map_err(|p| context.error("translation", p))?;
 
-    Camera::new(name.clone(), width, height, matrix, distortion, rotation, translation).map_err(|error| match error {
-        // Camera::new knows the camera by name only; point at the table too.
-        RigError::Field { field, problem, .. } => context.error(&field, problem),
-        other => other,
-    })
+    let turns = parse_quarter_turns(table.get(mount_key)).map_err(|p| context.error(mount_key, p))?;
+
+    Camera::new(name.clone(), width, height, matrix, distortion, rotation, translation)
+        .map(|camera| camera.with_mount_quarter_turns(turns))
+        .map_err(|error| match error {
+            // Camera::new knows the camera by name only; point at the table too.
+            RigError::Field { field, problem, .. } => context.error(&field, problem),
+            other => other,
+        })
 }
 
+/// Our key for [`Camera::mount_quarter_turns`] (written only when non-zero, so that files
+/// of upright rigs stay plain anipose files).
+const MOUNT_KEY: &str = "mount_quarter_turns";
+
 /// "a string", "an array of 2 values", ... for error messages.
-fn describe(value: &Value) -> String {
+pub(super) fn describe(value: &Value) -> String {
     match value {
         Value::Array(items) => format!("an array of {} value{}", items.len(), plural(items.len())),
         Value::Integer(i) => format!("an integer ({i})"),
@@ -262,7 +335,7 @@ fn parse_rotation(value: &Value) -> Result<Rotation3<f64>, String> {
 
 /// Checks that `matrix` is a rotation, then removes its rounding noise (the
 /// nearest rotation, `U Vᵀ`) so that it survives saving as a Rodrigues vector.
-fn rotation_from_matrix(matrix: &Matrix3<f64>) -> Result<Rotation3<f64>, String> {
+pub(super) fn rotation_from_matrix(matrix: &Matrix3<f64>) -> Result<Rotation3<f64>, String> {
     if let Some(problem) = rotation_problem(matrix) {
         return Err(problem);
     }
@@ -312,6 +385,19 @@ fn write_into(rig: &Rig, out: &mut String) -> fmt::Result {
         writeln!(out, "rotation = {}", list(rodrigues(&camera.rotation).as_slice()))?;
         writeln!(out, "translation = {}", list(camera.translation.as_slice()))?;
         writeln!(out, "fisheye = false")?;
+        if camera.mount_quarter_turns != 0 {
+            writeln!(out, "{MOUNT_KEY} = {}", camera.mount_quarter_turns)?;
+        }
+    }
+    if let Some(up) = &rig.declared_up {
+        let source = match up.source {
+            UpSource::Configured => "configured",
+            // An estimate is recomputed by the reader; it is never declared.
+            UpSource::Calibration | UpSource::Estimated { .. } => "calibration",
+        };
+        writeln!(out, "\n[{METADATA_TABLE}]")?;
+        writeln!(out, "up = {}", list(up.direction.as_slice()))?;
+        writeln!(out, "up_source = {}", quote(source))?;
     }
     Ok(())
 }

@@ -36,12 +36,20 @@ fn run(args: Args) -> Result<()> {
     let node = ipc::stage_node("handflow-cluster")?;
     let Some((_, rig)) = ipc::wait_for_rig(&node, &names)? else { return Ok(()) };
     let reference = rig.most_frontal_camera();
+    let world_up = rig.world_up();
+    let up = world_up.direction;
     let particles = ipc::particles_input(&node, &names, args.mode)?;
     let clusters = ipc::clusters_output(&node, &names, args.mode)?;
-    let new_stage = || ClusterStage::new(&rig.cameras[reference], !args.no_centre_correction);
+    let new_stage = || ClusterStage::new(&rig.cameras[reference], up, !args.no_centre_correction);
     let mut stage = new_stage();
     let mut connected = false;
-    tracing::info!("ready: reference `{}`, {} mode", rig.cameras[reference].name, args.mode);
+    tracing::info!(
+        "ready: reference `{}`, world up {:?} ({}), {} mode",
+        rig.cameras[reference].name,
+        up.as_slice(),
+        world_up.source,
+        args.mode
+    );
     ipc::serve(&particles, Duration::from_millis(100), |sample| -> Result<Next> {
         let header = *sample.user_header();
         if let Err(e) = header.validate(sample.payload().len()) {

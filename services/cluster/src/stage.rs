@@ -54,14 +54,22 @@ pub struct ClusterStage {
 }
 
 impl ClusterStage {
-    /// A stage for particles on the rays of `reference` (the camera the signer faces: image
-    /// up is the world's up, image right the signer's left). `centre_correction` moves each
-    /// cluster's centre from the visible surface to the object's middle
-    /// ([`surface_to_centre`]).
-    pub fn new(reference: &Camera, centre_correction: bool) -> Self {
+    /// A stage for particles on the rays of `reference` (the camera the signer faces) in a
+    /// world whose up is `up` (the rig's, [`handflow_protocol::Rig::world_up`]: from the
+    /// world, not from one camera's image, which a rolled or sideways-mounted camera would
+    /// tilt). The signer's left is the reference camera's forward axis crossed with up: its
+    /// right made horizontal, whatever its roll. `centre_correction` moves each cluster's
+    /// centre from the visible surface to the object's middle ([`surface_to_centre`]).
+    pub fn new(reference: &Camera, up: Vector3<f64>, centre_correction: bool) -> Self {
         let axes = reference.rotation.matrix();
-        let up = -axes.row(1).transpose();
-        let signer_left = axes.row(0).transpose();
+        let up = up.try_normalize(1e-12).unwrap_or_else(|| -axes.row(1).transpose());
+        let forward = axes.row(2).transpose();
+        // A camera looking straight up or down has no horizontal right of its own: keep its
+        // image right with the vertical part removed.
+        let signer_left = forward.cross(&up).try_normalize(1e-9).unwrap_or_else(|| {
+            let right = axes.row(0).transpose();
+            (right - up * right.dot(&up)).try_normalize(1e-9).unwrap_or(right)
+        });
         Self {
             tracker: Tracker::new(TrackerConfig::default(), up, signer_left),
             em: EmConfig::default(),
@@ -201,4 +209,37 @@ pub fn labelled_clusters(estimates: &[ObjectEstimate; 3]) -> [handflow_protocol:
         },
         reserved: 0,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use handflow_protocol::Distortion;
+    use nalgebra::{Matrix3, Rotation3};
+
+    /// A camera 2.5 m in front of the origin (+Z side, Y up) looking at it, rolled by
+    /// `roll` radians about its optical axis.
+    fn reference(roll: f64) -> Camera {
+        let position = Vector3::new(0.3, 0.4, 2.5);
+        let z = (-position).normalize();
+        let x = z.cross(&Vector3::y()).normalize();
+        let y = z.cross(&x);
+        let upright =
+            Rotation3::from_matrix_unchecked(Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]));
+        let r = Rotation3::from_axis_angle(&Vector3::z_axis(), roll) * upright;
+        let k = Matrix3::new(500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0);
+        Camera::new("ref", 640, 480, k, Distortion::default(), r, -(r * position)).expect("valid camera")
+    }
+
+    #[test]
+    fn signer_left_is_horizontal_and_independent_of_the_reference_roll() {
+        let upright = ClusterStage::new(&reference(0.0), Vector3::y(), true);
+        // The signer faces the camera: their left is the camera's right, here towards +X.
+        assert!(upright.signer_left.x > 0.9 && upright.signer_left.y.abs() < 1e-12);
+        for roll in [0.3, -1.2, std::f64::consts::FRAC_PI_2] {
+            let rolled = ClusterStage::new(&reference(roll), Vector3::y(), true);
+            assert!((rolled.signer_left - upright.signer_left).norm() < 1e-12, "roll {roll}");
+            assert_eq!(rolled.up, Vector3::y());
+        }
+    }
 }

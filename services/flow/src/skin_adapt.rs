@@ -84,7 +84,7 @@ impl SkinAdapter {
     /// Looks at frame set `frame` (RGB8 views in rig order) and, on every `detect_every`-th
     /// frame, detects faces and adapts. Returns whether any model changed.
     pub fn observe(&mut self, frame: u64, views: &[&[u8]]) -> bool {
-        if frame % self.detect_every != 0 || views.len() != self.cameras.len() {
+        if !frame.is_multiple_of(self.detect_every) || views.len() != self.cameras.len() {
             return false;
         }
         self.adapt_now(views)
@@ -93,7 +93,7 @@ impl SkinAdapter {
     /// Detects faces in every view and adapts now. Returns whether any model changed.
     pub fn adapt_now(&mut self, views: &[&[u8]]) -> bool {
         let started = std::time::Instant::now();
-        let full = self.stats.rounds % FULL_SEARCH_EVERY == 0;
+        let full = self.stats.rounds.is_multiple_of(FULL_SEARCH_EVERY);
         let mut found = Vec::with_capacity(self.cameras.len());
         for ((view, cam), last) in views.iter().zip(&self.cameras).zip(&self.last) {
             let region = match last {

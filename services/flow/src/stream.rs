@@ -363,7 +363,7 @@ impl<M> FlowStream<M> {
         on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
     ) -> Result<(), E> {
         let k = self.pushed;
-        if k % self.detect_every == 0 && (self.wait_for_models || self.pending_models.is_empty()) {
+        if k.is_multiple_of(self.detect_every) && (self.wait_for_models || self.pending_models.is_empty()) {
             self.faces.send(frame_set.to_vec())?;
             self.pending_models.push_back(k + MODEL_LAG);
         }

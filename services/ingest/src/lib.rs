@@ -2,17 +2,19 @@
 //!
 //! Image decoding (a PNG, JPEG, PPM or BMP file decoded as RGB8 straight into a
 //! caller-provided buffer, which will be a loaned shared-memory sample, with errors that name
-//! the file) and [`recording`]s: folders of per-camera images with a rig and a frame table,
-//! checked on opening and read as synchronised frame sets, cameras decoded in parallel.
+//! the file) and [`recording`]s: folders of per-camera images or videos with a calibration and
+//! capture times, checked on opening and read as synchronised frame sets, cameras decoded in
+//! parallel (videos through GStreamer, [`recording::video`]).
 
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
 use std::path::{Path, PathBuf};
 
+pub mod camera_match;
 pub mod recording;
 pub mod synthetic;
 
-pub use recording::{FrameEntry, FrameInfo, Recording, RecordingError};
+pub use recording::{FrameEntry, FrameInfo, Layout, OpenOptions, Recording, RecordingError};
 
 /// Why an image could not be ingested.
 #[derive(Debug, thiserror::Error)]

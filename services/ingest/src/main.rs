@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use handflow_ingest::synthetic::{Renderer, SceneSpec};
-use handflow_ingest::Recording;
+use handflow_ingest::{OpenOptions, Recording};
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
 use handflow_protocol::messages::{FrameHeader, RigHeader, END_OF_STREAM, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION};
 use handflow_protocol::Rig;
@@ -39,6 +39,20 @@ struct Args {
     /// Publish only the first N frames.
     #[arg(long)]
     frames: Option<u64>,
+    /// Calibration file to use instead of the recording's own.
+    #[arg(long, conflicts_with = "preset")]
+    calibration: Option<PathBuf>,
+    /// First frame number of the recording to publish (seeks in videos).
+    #[arg(long, conflicts_with = "preset")]
+    start: Option<u64>,
+    /// The world's up direction `x,y,z`, published with the rig (overrides the calibration's
+    /// or the estimate from the cameras).
+    #[arg(long, value_delimiter = ',', num_args = 3, allow_negative_numbers = true)]
+    up: Option<Vec<f64>>,
+    /// A file where the position of the stream is kept after each frame set, so that an
+    /// ingest restarted by the launcher resumes where the stream was instead of at frame 0.
+    #[arg(long)]
+    resume_file: Option<PathBuf>,
     /// Prefix of the service names.
     #[arg(long, default_value = ipc::DEFAULT_PREFIX)]
     services: String,
@@ -52,7 +66,7 @@ enum Pace {
 
 /// Where frame sets come from.
 enum Source {
-    Recording(Recording),
+    Recording(Box<Recording>),
     Synthetic { renderer: Box<Renderer>, masks: Vec<u8> },
 }
 
@@ -78,19 +92,25 @@ impl Source {
         }
     }
 
-    /// Fills `dst` with replay position `sequence`; returns its frame number and stream time.
-    fn fill(&mut self, sequence: u64, looped: bool, dst: &mut [u8]) -> Result<(u64, f64)> {
+    /// Fills `dst` with replay position `sequence`; returns its frame number and stream time,
+    /// or `None` for a frame set that cannot be read (already reported: the stream goes on
+    /// without it).
+    fn fill(&mut self, sequence: u64, looped: bool, dst: &mut [u8]) -> Result<Option<(u64, f64)>> {
         match self {
-            Source::Recording(r) => {
-                let info = r.read_frame_into(sequence, looped, dst)?;
-                Ok((info.frame, info.timestamp))
-            }
+            Source::Recording(r) => match r.read_frame_into(sequence, looped, dst) {
+                Ok(info) => Ok(Some((info.frame, info.timestamp))),
+                Err(error) if error.is_bad_frame() => {
+                    tracing::error!("frame set {sequence} skipped, counted as dropped: {error}");
+                    Ok(None)
+                }
+                Err(error) => Err(error.into()),
+            },
             Source::Synthetic { renderer, masks } => {
                 let n = u64::from(renderer.spec().frames.max(1));
                 let frame = (sequence % n) as u32;
                 renderer.render_into(frame, dst, masks);
                 // Time keeps increasing across loops.
-                Ok((u64::from(frame), sequence as f64 / renderer.spec().fps))
+                Ok(Some((u64::from(frame), sequence as f64 / renderer.spec().fps)))
             }
         }
     }
@@ -104,7 +124,9 @@ fn main() {
 fn run(args: Args) -> Result<()> {
     let mut source = match (&args.recording, &args.preset) {
         (Some(dir), _) => {
-            let mut recording = Recording::open(dir)?;
+            let options = OpenOptions { calibration: args.calibration.clone(), start: args.start, frames: None };
+            let mut recording = Recording::open_with(dir, &options)?;
+            tracing::info!("recording `{}`: {}", dir.display(), recording.summary());
             if args.preload {
                 let started = Instant::now();
                 recording.preload()?;
@@ -115,7 +137,7 @@ fn run(args: Args) -> Result<()> {
                     started.elapsed().as_secs_f64()
                 );
             }
-            Source::Recording(recording)
+            Source::Recording(Box::new(recording))
         }
         (None, Some(name)) => {
             let spec = SceneSpec::preset(name).with_context(|| format!("unknown preset `{name}`"))?;
@@ -139,7 +161,13 @@ fn run(args: Args) -> Result<()> {
     let names = ServiceNames::new(&args.services);
     let node = ipc::stage_node("handflow-ingest")?;
     // Kept alive: the rig's history lives as long as its publisher.
-    let rig = publish_rig(&node, &names, source.rig(), source.frame_rate())?;
+    let mut published_rig = source.rig().clone();
+    if let Some(up) = &args.up {
+        published_rig.set_up(nalgebra::Vector3::new(up[0], up[1], up[2]))?;
+    }
+    let up = published_rig.world_up();
+    tracing::info!("world up {:?} ({})", up.direction.as_slice(), up.source);
+    let rig = publish_rig(&node, &names, &published_rig, source.frame_rate())?;
     let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
     // Replay loses nothing: the flow stage must listen before a frame goes out (at the start
     // and after a restart of flow). Meanwhile late joiners get the rig.
@@ -175,8 +203,15 @@ fn run(args: Args) -> Result<()> {
         if pace == Pace::Max { "maximum" } else { "recorded" },
     );
     let interval = Duration::from_secs_f64(1.0 / source.frame_rate());
-    let started = Instant::now();
-    for sequence in 0..total {
+    let resume_from = args.resume_file.as_deref().and_then(read_position).filter(|&p| p > 0 && p < total);
+    if let Some(position) = resume_from {
+        tracing::info!("resuming the stream at frame set {position} (restarted)");
+    }
+    let first = resume_from.unwrap_or(0);
+    // Paced as if the stream had run from its first frame set.
+    let already = interval.saturating_mul(first.min(u64::from(u32::MAX)) as u32);
+    let started = Instant::now().checked_sub(already).unwrap_or_else(Instant::now);
+    for sequence in first..total {
         if ipc::stop_requested() {
             return Ok(());
         }
@@ -198,9 +233,14 @@ fn run(args: Args) -> Result<()> {
         // Zero-initialised, so the decoder writes into plain bytes; the image is decoded
         // into the shared memory itself.
         let mut sample = frames.publisher.loan_slice(frame_set_len).context("loaning a frame sample")?;
-        let (frame, timestamp_s) = source
+        let filled = source
             .fill(sequence, args.looped, sample.payload_mut())
             .with_context(|| format!("frame set {sequence}"))?;
+        let Some((frame, timestamp_s)) = filled else {
+            // Never sent: the publisher sees the gap in sequence numbers and counts it.
+            save_position(args.resume_file.as_deref(), sequence + 1);
+            continue;
+        };
         *sample.user_header_mut() = FrameHeader {
             protocol_version: PROTOCOL_VERSION,
             pixel_format: PIXEL_FORMAT_RGB8,
@@ -218,6 +258,7 @@ fn run(args: Args) -> Result<()> {
         };
         sample.send().with_context(|| format!("sending frame set {sequence}"))?;
         frames.notify()?;
+        save_position(args.resume_file.as_deref(), sequence + 1);
         if sequence % 30 == 0 {
             tracing::debug!("frame set {sequence} sent");
         }
@@ -254,4 +295,20 @@ fn publish_rig(
     sample.send().context("sending the rig")?;
     out.notify()?;
     Ok(out)
+}
+
+/// The stream position a previous ingest of this run left, if any.
+fn read_position(path: &std::path::Path) -> Option<u64> {
+    std::fs::read_to_string(path).ok()?.trim().parse().ok()
+}
+
+/// Keeps the position of the stream (the next sequence to publish) for a restarted ingest.
+/// Written to a temporary file and renamed, so a kill never leaves half a number.
+fn save_position(path: Option<&std::path::Path>, next: u64) {
+    let Some(path) = path else { return };
+    let temporary = path.with_extension("tmp");
+    let saved = std::fs::write(&temporary, next.to_string()).and_then(|()| std::fs::rename(&temporary, path));
+    if let Err(error) = saved {
+        tracing::warn!("cannot keep the stream position in `{}`: {error}", path.display());
+    }
 }

@@ -328,7 +328,7 @@ fn make_rig(spec: &SceneSpec) -> Result<Rig, String> {
                 .map_err(|e| e.to_string())
         })
         .collect::<Result<Vec<_>, _>>()?;
-    Ok(Rig { cameras })
+    Ok(Rig::new(cameras))
 }
 
 fn towards(hand: V3, shoulder: V3, back: f64) -> V3 {

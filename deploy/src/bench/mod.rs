@@ -1,0 +1,4 @@
+//! Speed measurements; each reports against a baseline measured in the same run.
+
+pub mod cluster;
+pub mod stream;

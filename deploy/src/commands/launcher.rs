@@ -1,0 +1,390 @@
+//! `handflow run`: starts the four stage processes of a pipeline, passes their logs on,
+//! restarts a stage that dies, and stops them all together.
+//!
+//! A pipeline file (TOML) says what to run; flags override it:
+//!
+//! ```toml
+//! mode = "replay"                  # or "live"
+//! recording = "out/signer-3cam"    # a recording folder to replay, or
+//! # preset = "signer-3cam"         # a synthetic scene ingest renders as it goes
+//! out = "out/trajectories.jsonl"   # the JSON Lines file the publisher writes
+//! pace = "max"                     # or "recorded" (default: max in replay, recorded in live)
+//! loop = false                     # replay the source forever
+//! # frames = 150                   # publish only the first N frame sets
+//! # start = 300                    # the recording's first frame to publish (seeks in videos)
+//! # calibration = "rig.toml"       # instead of the recording's own calibration
+//! # up = [0.0, 0.0, 1.0]           # the world's up, instead of the calibration's or the estimate
+//! services = "handflow"            # prefix of the iceoryx2 service names
+//! variant = "handflow"             # or "paper"
+//! max_restarts = 5                 # per stage, before the run gives up
+//! ```
+//!
+//! A run that is not looped (or has a fixed number of frames) ends when the publisher has published the end of the stream
+//! (every frame through every stage); the launcher then stops the other stages and returns.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use handflow_protocol::ipc::{self, Mode};
+use nix::sys::signal::{kill, Signal};
+use nix::unistd::Pid;
+use serde::Deserialize;
+
+/// What a pipeline runs.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Pipeline {
+    /// `replay` or `live`.
+    pub mode: String,
+    /// Recording folder to replay.
+    pub recording: Option<PathBuf>,
+    /// Synthetic scene rendered by ingest as it goes.
+    pub preset: Option<String>,
+    /// JSON Lines file of the trajectories.
+    pub out: Option<PathBuf>,
+    /// `max` or `recorded`.
+    pub pace: Option<String>,
+    /// Replay the source forever.
+    #[serde(rename = "loop")]
+    pub looped: bool,
+    /// Publish only the first N frame sets.
+    pub frames: Option<u64>,
+    /// The recording's first frame number to publish (seeks in videos).
+    pub start: Option<u64>,
+    /// Calibration file instead of the recording's own.
+    pub calibration: Option<PathBuf>,
+    /// The world's up direction, instead of the calibration's or the estimate.
+    pub up: Option<[f64; 3]>,
+    /// Decode the recording into memory before the run (ingest's `--preload`): frame sets
+    /// are then published as a camera delivers them, without decoding on the path.
+    pub preload: bool,
+    /// Prefix of the service names.
+    pub services: String,
+    /// Engine variant.
+    pub variant: String,
+    /// Restarts per stage before the run gives up.
+    pub max_restarts: u32,
+}
+
+impl Default for Pipeline {
+    fn default() -> Self {
+        Self {
+            mode: "replay".into(),
+            recording: None,
+            preset: None,
+            out: None,
+            pace: None,
+            looped: false,
+            frames: None,
+            start: None,
+            calibration: None,
+            up: None,
+            preload: false,
+            services: ipc::DEFAULT_PREFIX.into(),
+            variant: "handflow".into(),
+            max_restarts: 5,
+        }
+    }
+}
+
+impl Pipeline {
+    /// Reads a pipeline file; relative paths in it are relative to the file's folder.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading pipeline `{}`", path.display()))?;
+        let mut p: Pipeline = toml::from_str(&text).with_context(|| format!("pipeline `{}`", path.display()))?;
+        let base = path.parent().unwrap_or(Path::new(""));
+        for file in [&mut p.recording, &mut p.out, &mut p.calibration].into_iter().flatten() {
+            if file.is_relative() {
+                *file = base.join(&*file);
+            }
+        }
+        p.validate().with_context(|| format!("pipeline `{}`", path.display()))?;
+        Ok(p)
+    }
+
+    /// Checks the fields that the stages would otherwise reject one by one.
+    pub fn validate(&self) -> Result<()> {
+        self.mode.parse::<Mode>().map_err(anyhow::Error::msg).context("field `mode`")?;
+        if let Some(pace) = &self.pace {
+            if pace != "max" && pace != "recorded" {
+                bail!("field `pace`: `{pace}` (expected `max` or `recorded`)");
+            }
+        }
+        match (&self.recording, &self.preset) {
+            (Some(_), Some(_)) => bail!("fields `recording` and `preset`: give one source, not both"),
+            (None, None) => bail!("no source: give `recording` (a folder) or `preset` (a synthetic scene)"),
+            _ => {}
+        }
+        if self.variant != "handflow" && self.variant != "paper" {
+            bail!("field `variant`: `{}` (expected `handflow` or `paper`)", self.variant);
+        }
+        if self.services.is_empty() || self.services.contains(char::is_whitespace) {
+            bail!("field `services`: `{}` is not a usable name prefix", self.services);
+        }
+        Ok(())
+    }
+
+    /// Whether the run ends by itself (not looped, or a fixed number of frame sets).
+    pub fn ends(&self) -> bool {
+        !self.looped || self.frames.is_some()
+    }
+}
+
+/// One stage process.
+struct Stage {
+    name: &'static str,
+    program: PathBuf,
+    args: Vec<String>,
+    child: Option<Child>,
+    restarts: u32,
+}
+
+impl Stage {
+    fn start(&mut self) -> Result<()> {
+        let child = Command::new(&self.program)
+            .args(&self.args)
+            .stdin(Stdio::null())
+            .spawn()
+            .with_context(|| format!("starting `{}`", self.program.display()))?;
+        tracing::info!("started {} (pid {})", self.name, child.id());
+        self.child = Some(child);
+        Ok(())
+    }
+
+    fn pid(&self) -> Option<Pid> {
+        self.child.as_ref().and_then(|c| i32::try_from(c.id()).ok()).map(Pid::from_raw)
+    }
+}
+
+/// How a run ended.
+#[derive(Clone, Debug, Default)]
+pub struct RunReport {
+    /// Stage restarts, by stage name.
+    pub restarts: Vec<(String, u32)>,
+    /// Whether the stream ended (rather than the run being interrupted).
+    pub completed: bool,
+    /// Wall time, seconds.
+    pub seconds: f64,
+}
+
+/// The folder holding the stage binaries: the one `handflow` itself is in.
+pub fn stage_dir() -> Result<PathBuf> {
+    let exe = std::env::current_exe().context("locating the handflow binary")?;
+    Ok(exe.parent().map(Path::to_path_buf).unwrap_or_default())
+}
+
+fn stage_binary(dir: &Path, name: &str) -> Result<PathBuf> {
+    let path = dir.join(name);
+    if !path.is_file() {
+        bail!(
+            "stage binary `{}` not found: build every binary with `cargo build --release` from the repository root",
+            path.display()
+        );
+    }
+    Ok(path)
+}
+
+/// How long stages get to stop after SIGTERM before they are killed.
+const STOP_GRACE: Duration = Duration::from_secs(3);
+
+/// Runs a pipeline until its stream ends, it is interrupted (SIGINT/SIGTERM), or a stage
+/// keeps dying.
+pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
+    p.validate()?;
+    let dir = stage_dir()?;
+    let mode = p.mode.clone();
+    let common = |mut v: Vec<String>| {
+        v.extend(["--mode".into(), mode.clone(), "--services".into(), p.services.clone()]);
+        v
+    };
+    let mut ingest_args = Vec::new();
+    if let Some(r) = &p.recording {
+        ingest_args.extend(["--recording".into(), r.display().to_string()]);
+    }
+    if let Some(preset) = &p.preset {
+        ingest_args.extend(["--preset".into(), preset.clone()]);
+    }
+    if let Some(pace) = &p.pace {
+        ingest_args.extend(["--pace".into(), pace.clone()]);
+    }
+    if p.looped {
+        ingest_args.push("--loop".into());
+    }
+    if let Some(n) = p.frames {
+        ingest_args.extend(["--frames".into(), n.to_string()]);
+    }
+    if p.preload {
+        ingest_args.push("--preload".into());
+    }
+    if let Some(start) = p.start {
+        ingest_args.extend(["--start".into(), start.to_string()]);
+    }
+    if let Some(calibration) = &p.calibration {
+        ingest_args.extend(["--calibration".into(), calibration.display().to_string()]);
+    }
+    if let Some([x, y, z]) = p.up {
+        ingest_args.push(format!("--up={x},{y},{z}"));
+    }
+    // Where a restarted ingest finds the stream's position (this run's own file).
+    let resume_file = std::env::temp_dir().join(format!("handflow-{}-{}.position", p.services, std::process::id()));
+    let _ = std::fs::remove_file(&resume_file);
+    ingest_args.extend(["--resume-file".into(), resume_file.display().to_string()]);
+    let mut publish_args = Vec::new();
+    if let Some(out) = &p.out {
+        publish_args.extend(["--out".into(), out.display().to_string()]);
+    }
+    if p.ends() {
+        publish_args.push("--exit-at-end".into());
+    }
+    // Downstream first, so each stage finds its subscriber waiting.
+    let mut stages = vec![
+        Stage {
+            name: "publish",
+            program: stage_binary(&dir, "handflow-publish")?,
+            args: common(publish_args),
+            child: None,
+            restarts: 0,
+        },
+        Stage {
+            name: "cluster",
+            program: stage_binary(&dir, "handflow-cluster")?,
+            args: common(Vec::new()),
+            child: None,
+            restarts: 0,
+        },
+        Stage {
+            name: "flow",
+            program: stage_binary(&dir, "handflow-flow")?,
+            args: common(vec!["--variant".into(), p.variant.clone()]),
+            child: None,
+            restarts: 0,
+        },
+        Stage {
+            name: "ingest",
+            program: stage_binary(&dir, "handflow-ingest")?,
+            args: common(ingest_args),
+            child: None,
+            restarts: 0,
+        },
+    ];
+    let node = ipc::create_node("handflow-run")?;
+    let cleaned = ipc::cleanup_dead_nodes(&node);
+    if cleaned > 0 {
+        tracing::info!("cleaned up {cleaned} dead node(s) of an earlier run");
+    }
+    let started = Instant::now();
+    let outcome = supervise(&node, &mut stages, p);
+    stop_all(&mut stages);
+    let _ = std::fs::remove_file(&resume_file);
+    let completed = outcome?;
+    Ok(RunReport {
+        restarts: stages.iter().map(|s| (s.name.to_string(), s.restarts)).collect(),
+        completed,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// Starts the stages and watches them; `Ok(true)` when the stream ended, `Ok(false)` when
+/// interrupted.
+fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline) -> Result<bool> {
+    for stage in stages.iter_mut() {
+        stage.start()?;
+    }
+    loop {
+        // Wakes on SIGINT/SIGTERM as well as every 20 ms.
+        if node.wait(Duration::from_millis(20)).is_err() {
+            tracing::info!("interrupted: stopping every stage");
+            return Ok(false);
+        }
+        for stage in stages.iter_mut() {
+            let Some(child) = stage.child.as_mut() else { continue };
+            let Some(status) = child.try_wait().context("watching a stage")? else { continue };
+            stage.child = None;
+            if stage.name == "publish" && p.ends() && status.success() {
+                tracing::info!("the stream has ended: stopping the other stages");
+                return Ok(true);
+            }
+            restart(node, stage, status, p.max_restarts)?;
+        }
+    }
+}
+
+fn restart(node: &ipc::IpcNode, stage: &mut Stage, status: ExitStatus, max_restarts: u32) -> Result<()> {
+    if stage.restarts >= max_restarts {
+        bail!("stage {} ended ({status}) after {} restarts: giving up", stage.name, stage.restarts);
+    }
+    stage.restarts += 1;
+    // What the dead process held in shared memory would block a lossless publisher.
+    let cleaned = ipc::cleanup_dead_nodes(node);
+    tracing::warn!(
+        "stage {} ended ({status}); cleaned {cleaned} dead node(s), restarting it ({} of at most {max_restarts})",
+        stage.name,
+        stage.restarts
+    );
+    stage.start()
+}
+
+/// SIGTERM to every stage still running, then SIGKILL to those that have not stopped
+/// within [`STOP_GRACE`].
+fn stop_all(stages: &mut [Stage]) {
+    for stage in stages.iter() {
+        if let Some(pid) = stage.pid() {
+            let _ = kill(pid, Signal::SIGTERM);
+        }
+    }
+    let deadline = Instant::now() + STOP_GRACE;
+    for stage in stages.iter_mut() {
+        let Some(mut child) = stage.child.take() else { continue };
+        loop {
+            match child.try_wait() {
+                Ok(Some(_)) | Err(_) => break,
+                Ok(None) if Instant::now() >= deadline => {
+                    tracing::warn!("stage {} did not stop within {STOP_GRACE:?}: killing it", stage.name);
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    break;
+                }
+                Ok(None) => std::thread::sleep(Duration::from_millis(10)),
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pipeline_file_resolves_paths_next_to_itself_and_checks_its_fields() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.toml");
+        std::fs::write(&path, "mode = \"live\"\nrecording = \"rec\"\nout = \"t.jsonl\"\n").unwrap();
+        let p = Pipeline::load(&path).unwrap();
+        assert_eq!(p.recording.as_deref(), Some(dir.path().join("rec").as_path()));
+        assert_eq!(p.services, "handflow");
+        std::fs::write(&path, "mode = \"fast\"\nrecording = \"rec\"\n").unwrap();
+        let e = format!("{:#}", Pipeline::load(&path).unwrap_err());
+        assert!(e.contains("mode") && e.contains("fast"), "{e}");
+        std::fs::write(&path, "recording = \"rec\"\nspeed = 3\n").unwrap();
+        let e = format!("{:#}", Pipeline::load(&path).unwrap_err());
+        assert!(e.contains("speed"), "{e}");
+        std::fs::write(&path, "mode = \"replay\"\n").unwrap();
+        assert!(format!("{:#}", Pipeline::load(&path).unwrap_err()).contains("no source"));
+    }
+
+    #[test]
+    fn the_example_pipeline_files_are_valid() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines");
+        let mut seen = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                Pipeline::load(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+                seen += 1;
+            }
+        }
+        assert!(seen >= 2);
+    }
+}

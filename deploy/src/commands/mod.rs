@@ -1,0 +1,7 @@
+//! The commands a user runs on footage and pipelines, one module each.
+
+pub mod launcher;
+pub mod overlay;
+pub mod rig;
+pub mod tap;
+pub mod track;

@@ -1,0 +1,81 @@
+//! End-to-end tests of `handflow rig show` and `handflow rig convert` on the calibration
+//! fixtures (the same three-camera rig in every supported format).
+
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use handflow_protocol::Rig;
+use nalgebra::Point3;
+
+/// The format fixtures, relative to this crate.
+const FORMATS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/rig_formats");
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(FORMATS).join(name)
+}
+
+fn handflow(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_handflow")).args(args).output().expect("run handflow")
+}
+
+fn stdout(output: &Output) -> String {
+    assert!(output.status.success(), "failed: {}", String::from_utf8_lossy(&output.stderr));
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+#[test]
+fn rig_show_describes_a_caliscope_file() {
+    let file = fixture("camera_array.toml");
+    let text = stdout(&handflow(&["rig", "show", file.to_str().unwrap()]));
+    for needle in [
+        "format: caliscope camera_array.toml",
+        "cameras: 3",
+        "  cam_0:",
+        "size: 1920x1080",
+        "focal length: fx 1400.00 px, fy 1398.50 px",
+        "viewing direction: [",
+        "mount quarter turns: 1",
+        "baselines (m):",
+        "world up: [0.0000, -1.0000, 0.0000] (estimated: ",
+        "snapped to it",
+        "`cam_3`",
+        "ignore = true",
+    ] {
+        assert!(text.contains(needle), "lacks {needle:?}:\n{text}");
+    }
+}
+
+#[test]
+fn rig_show_reports_a_bad_file_with_its_error() {
+    let bad = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/bad/opencv_missing_rotation.yml");
+    let output = handflow(&["rig", "show", bad.to_str().unwrap()]);
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("opencv_missing_rotation.yml") && stderr.contains("field `R`"), "{stderr}");
+}
+
+#[test]
+fn rig_convert_writes_our_toml_of_the_same_rig() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("rig.toml");
+    let text = stdout(&handflow(&[
+        "rig",
+        "convert",
+        fixture("opencv_rig.xml").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    assert!(text.contains("wrote 3 cameras"), "{text}");
+    let converted = Rig::from_toml_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let reference = Rig::load(fixture("anipose.toml")).unwrap();
+    assert_eq!(converted.cameras.len(), reference.cameras.len());
+    for (a, b) in reference.cameras.iter().zip(&converted.cameras) {
+        assert_eq!((&a.name, a.mount_quarter_turns), (&b.name, b.mount_quarter_turns));
+        for p in [Point3::new(0.0, 0.0, 0.0), Point3::new(0.3, -0.2, 0.1), Point3::new(-0.4, 0.3, -0.2)] {
+            let (x, y) = (a.project(&p).unwrap(), b.project(&p).unwrap());
+            assert!((x - y).norm() < 1e-6, "{}: {x} vs {y}", a.name);
+        }
+    }
+}

@@ -1,0 +1,227 @@
+//! When each frame set was captured: `frames.csv`, or a caliscope `timestamps.csv`.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use super::RecordingError;
+
+/// The frame table of handflow's own layout.
+pub const FRAMES_FILE: &str = "frames.csv";
+/// caliscope's capture times.
+pub const CALISCOPE_TIMESTAMPS_FILE: &str = "timestamps.csv";
+
+/// One frame set of a caliscope session: which frame of each camera belongs to it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SyncedSet {
+    /// caliscope's `sync_index`.
+    pub sync_index: u64,
+    /// Per camera id: the frame's position in that camera's video and its capture time,
+    /// seconds.
+    pub frames: BTreeMap<u64, (usize, f64)>,
+}
+
+/// Parses `frames.csv`: a `frame,timestamp` header, then rows with a frame number and a
+/// finite timestamp in seconds, both strictly increasing.
+pub fn read_frame_table(path: &Path) -> Result<Vec<(u64, f64)>, RecordingError> {
+    let err = |line: usize, problem: String| RecordingError::Frames { path: path.to_path_buf(), line, problem };
+    let text = std::fs::read_to_string(path).map_err(|e| err(0, format!("cannot be read: {e}")))?;
+    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
+    match lines.next() {
+        Some((_, header)) => {
+            let cols: Vec<String> = header.split(',').map(|c| c.trim().to_ascii_lowercase()).collect();
+            if cols != ["frame", "timestamp"] {
+                return Err(err(1, format!("expected the header `frame,timestamp`, found `{}`", header.trim())));
+            }
+        }
+        None => return Err(err(0, "is empty (expected a `frame,timestamp` header and one row per frame)".into())),
+    }
+    let mut rows: Vec<(u64, f64)> = Vec::new();
+    for (i, line) in lines {
+        let n = i + 1;
+        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+        let [frame, timestamp] = fields[..] else {
+            return Err(err(n, format!("expected 2 fields (frame,timestamp), found {}", fields.len())));
+        };
+        let frame: u64 = frame.parse().map_err(|_| err(n, format!("frame `{frame}` is not a non-negative integer")))?;
+        let timestamp: f64 =
+            timestamp.parse().map_err(|_| err(n, format!("timestamp `{timestamp}` is not a number")))?;
+        if !timestamp.is_finite() {
+            return Err(err(n, format!("frame {frame}: timestamp {timestamp} is not finite")));
+        }
+        if let Some(&(prev_frame, prev_time)) = rows.last() {
+            if frame <= prev_frame {
+                return Err(err(
+                    n,
+                    format!("frame {frame} does not follow frame {prev_frame} (frame numbers must increase)"),
+                ));
+            }
+            if timestamp <= prev_time {
+                return Err(err(
+                    n,
+                    format!(
+                        "frame {frame}: timestamp {timestamp} is not after frame {prev_frame}'s {prev_time} \
+                         (timestamps must increase)"
+                    ),
+                ));
+            }
+        }
+        rows.push((frame, timestamp));
+    }
+    if rows.is_empty() {
+        return Err(err(0, "lists no frame".into()));
+    }
+    Ok(rows)
+}
+
+/// One camera's row of a caliscope file: `sync_index`, `frame_index` when given, capture
+/// time and line number.
+type Row = (u64, Option<u64>, f64, usize);
+
+/// Parses a caliscope `timestamps.csv` (`sync_index, cam_id[, frame_index], frame_time`, in
+/// any column order) into frame sets, in `sync_index` order.
+///
+/// caliscope's `frame_index` counts a camera's captured frames; its video holds them from
+/// the first listed one on, so a frame's position in the video is its `frame_index` minus
+/// the camera's first. Without `frame_index`, a camera's rows in `sync_index` order are its
+/// video's frames in order.
+pub fn read_caliscope_timestamps(path: &Path) -> Result<Vec<SyncedSet>, RecordingError> {
+    let err = |line: usize, problem: String| RecordingError::Frames { path: path.to_path_buf(), line, problem };
+    let text = std::fs::read_to_string(path).map_err(|e| err(0, format!("cannot be read: {e}")))?;
+    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
+    let Some((_, header)) = lines.next() else {
+        return Err(err(0, "is empty (expected a `sync_index,cam_id,frame_index,frame_time` header)".into()));
+    };
+    let columns: Vec<String> = header.split(',').map(|c| c.trim().to_ascii_lowercase()).collect();
+    let column = |name: &str| columns.iter().position(|c| c == name);
+    let (Some(sync_col), Some(cam_col), Some(time_col)) =
+        (column("sync_index"), column("cam_id"), column("frame_time"))
+    else {
+        return Err(err(
+            1,
+            format!(
+                "expected the columns `sync_index`, `cam_id`, `frame_time` (and optionally `frame_index`), found `{}`",
+                header.trim()
+            ),
+        ));
+    };
+    let index_col = column("frame_index");
+    // (sync_index, cam_id) -> (frame_index or None, time, line)
+    let mut rows: BTreeMap<(u64, u64), (Option<u64>, f64, usize)> = BTreeMap::new();
+    for (i, line) in lines {
+        let n = i + 1;
+        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+        if fields.len() != columns.len() {
+            return Err(err(n, format!("expected {} fields, found {}", columns.len(), fields.len())));
+        }
+        let integer = |col: usize, name: &str| -> Result<u64, RecordingError> {
+            fields[col].parse().map_err(|_| err(n, format!("{name} `{}` is not a non-negative integer", fields[col])))
+        };
+        let sync = integer(sync_col, "sync_index")?;
+        let cam = integer(cam_col, "cam_id")?;
+        let index = index_col.map(|c| integer(c, "frame_index")).transpose()?;
+        let time: f64 = fields[time_col]
+            .parse()
+            .ok()
+            .filter(|t: &f64| t.is_finite())
+            .ok_or_else(|| err(n, format!("frame_time `{}` is not a finite number", fields[time_col])))?;
+        if let Some(&(_, _, first)) = rows.get(&(sync, cam)) {
+            return Err(err(n, format!("camera {cam} appears twice in sync_index {sync} (first on line {first})")));
+        }
+        rows.insert((sync, cam), (index, time, n));
+    }
+    if rows.is_empty() {
+        return Err(err(0, "lists no frame".into()));
+    }
+    // Each camera's rows in sync order give its video positions.
+    let mut per_camera: BTreeMap<u64, Vec<Row>> = BTreeMap::new();
+    for (&(sync, cam), &(index, time, line)) in &rows {
+        per_camera.entry(cam).or_default().push((sync, index, time, line));
+    }
+    let mut sets: BTreeMap<u64, SyncedSet> = BTreeMap::new();
+    for (cam, list) in &per_camera {
+        let first_index = list.iter().filter_map(|r| r.1).min();
+        let mut previous: Option<(u64, u64)> = None;
+        for (rank, &(sync, index, time, line)) in list.iter().enumerate() {
+            let position = match (index, first_index) {
+                (Some(index), Some(first)) => {
+                    if let Some((prev, prev_sync)) = previous {
+                        if index <= prev {
+                            return Err(err(
+                                line,
+                                format!(
+                                    "camera {cam}: frame_index {index} at sync_index {sync} does not follow \
+                                     {prev} at sync_index {prev_sync}"
+                                ),
+                            ));
+                        }
+                    }
+                    previous = Some((index, sync));
+                    (index - first) as usize
+                }
+                _ => rank,
+            };
+            sets.entry(sync)
+                .or_insert_with(|| SyncedSet { sync_index: sync, frames: BTreeMap::new() })
+                .frames
+                .insert(*cam, (position, time));
+        }
+    }
+    Ok(sets.into_values().collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(text: &str) -> (tempfile::TempDir, std::path::PathBuf) {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join(CALISCOPE_TIMESTAMPS_FILE);
+        std::fs::write(&path, text).expect("write");
+        (dir, path)
+    }
+
+    #[test]
+    fn caliscope_rows_group_by_sync_index_with_frame_index() {
+        // caliscope's order (cameras shuffled within a set); frame_index starts at 26 as in
+        // a real session whose videos begin there.
+        let (_d, path) = write(
+            "sync_index,cam_id,frame_index,frame_time\n26,1,26,10.001\n26,0,26,10.0\n27,0,27,10.17\n27,1,27,10.2\n\
+             28,0,29,10.5\n",
+        );
+        let sets = read_caliscope_timestamps(&path).expect("parses");
+        assert_eq!(sets.len(), 3);
+        assert_eq!(sets[0].sync_index, 26);
+        assert_eq!(sets[0].frames[&0], (0, 10.0));
+        assert_eq!(sets[0].frames[&1], (0, 10.001));
+        assert_eq!(sets[1].frames[&1], (1, 10.2));
+        // Camera 0 skipped a capture index: its video position follows frame_index.
+        assert_eq!(sets[2].frames[&0], (3, 10.5));
+        assert!(!sets[2].frames.contains_key(&1), "camera 1 has no frame in set 28");
+    }
+
+    #[test]
+    fn caliscope_rows_without_frame_index_take_video_order() {
+        let (_d, path) = write("sync_index,cam_id,frame_time\n5,0,1.0\n5,1,1.01\n6,1,1.2\n7,0,1.4\n7,1,1.41\n");
+        let sets = read_caliscope_timestamps(&path).expect("parses");
+        assert_eq!(sets.len(), 3);
+        assert_eq!(sets[2].frames[&0], (1, 1.4), "camera 0's second row is its video's second frame");
+        assert_eq!(sets[2].frames[&1], (2, 1.41));
+    }
+
+    #[test]
+    fn bad_caliscope_files_name_the_line() {
+        let (_d, p) = write("sync,cam,time\n");
+        assert!(read_caliscope_timestamps(&p).unwrap_err().to_string().contains("sync_index"));
+        let (_d, p) = write("sync_index,cam_id,frame_time\n1,0,abc\n");
+        let e = read_caliscope_timestamps(&p).unwrap_err().to_string();
+        assert!(e.contains("line 2") && e.contains("abc"), "{e}");
+        let (_d, p) = write("sync_index,cam_id,frame_time\n1,0,1.0\n1,0,1.1\n");
+        let e = read_caliscope_timestamps(&p).unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("twice"), "{e}");
+        let (_d, p) = write("sync_index,cam_id,frame_index,frame_time\n1,0,5,1.0\n2,0,4,1.1\n");
+        let e = read_caliscope_timestamps(&p).unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("does not follow"), "{e}");
+        let (_d, p) = write("sync_index,cam_id,frame_time\n");
+        assert!(read_caliscope_timestamps(&p).unwrap_err().to_string().contains("no frame"));
+    }
+}

@@ -1,0 +1,264 @@
+//! Video recordings through the real decoder: lossless round trips, caliscope timestamps,
+//! encoder padding, and a corrupt frame in the middle.
+//!
+//! Fixtures are encoded here with the `ffmpeg` command-line tool (a test tool only; handflow
+//! decodes with GStreamer). Without it the tests say so and pass, unless
+//! `HANDFLOW_REQUIRE_FFMPEG=1` (as in CI), which makes its absence a failure.
+
+#![allow(clippy::unwrap_used)]
+
+use std::path::Path;
+use std::process::Command;
+
+use handflow_ingest::{Layout, OpenOptions, Recording};
+use handflow_protocol::{Camera, Distortion, Rig};
+use nalgebra::{Matrix3, Rotation3, Vector3};
+
+const W: u32 = 48;
+const H: u32 = 32;
+const FRAMES: u32 = 6;
+
+fn have_ffmpeg() -> bool {
+    let found = Command::new("ffmpeg").arg("-version").output().is_ok_and(|o| o.status.success());
+    if !found {
+        assert!(
+            std::env::var("HANDFLOW_REQUIRE_FFMPEG").as_deref() != Ok("1"),
+            "ffmpeg is required (HANDFLOW_REQUIRE_FFMPEG=1) but not installed"
+        );
+        eprintln!("skipping: the `ffmpeg` tool that encodes the fixtures is not installed");
+    }
+    found
+}
+
+fn rig(names: &[&str], width: u32, height: u32) -> Rig {
+    let cameras = names
+        .iter()
+        .enumerate()
+        .map(|(k, name)| {
+            Camera::new(
+                *name,
+                width,
+                height,
+                Matrix3::new(40.0, 0.0, 23.5, 0.0, 40.0, 15.5, 0.0, 0.0, 1.0),
+                Distortion::default(),
+                Rotation3::identity(),
+                Vector3::new(-0.1 * k as f64, 0.0, 1.0),
+            )
+            .unwrap()
+        })
+        .collect();
+    Rig::new(cameras)
+}
+
+/// Frame `f` of camera `c`: smooth ramps (lossy codecs keep them within a few levels) that
+/// differ per pixel, frame and camera.
+fn pixels(c: u32, f: u32) -> image::RgbImage {
+    image::RgbImage::from_fn(W, H, |x, y| {
+        image::Rgb([(x * 5 + f * 17) as u8, (y * 7 + c * 50) as u8, (x * 3 + y * 2 + f * 29 + c) as u8])
+    })
+}
+
+/// Encodes camera `c`'s frames into `out` with `codec_args` (ffmpeg options after `-i`).
+fn encode(c: u32, out: &Path, codec_args: &[&str]) {
+    let frames = tempfile::tempdir().unwrap();
+    for f in 0..FRAMES {
+        pixels(c, f).save(frames.path().join(format!("{f:06}.png"))).unwrap();
+    }
+    let status = Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-y", "-framerate", "10", "-i"])
+        .arg(frames.path().join("%06d.png"))
+        .args(codec_args)
+        .arg(out)
+        .status()
+        .unwrap();
+    assert!(status.success(), "ffmpeg encoding {}", out.display());
+}
+
+const LOSSLESS: [&str; 4] = ["-c:v", "ffv1", "-pix_fmt", "bgr0"];
+
+#[test]
+fn lossless_videos_decode_to_the_frames_they_were_encoded_from() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    rig(&["cam_0", "cam_1"], W, H).save(dir.path().join("rig.toml")).unwrap();
+    for c in 0..2 {
+        encode(c, &dir.path().join(format!("cam_{c}.mkv")), &LOSSLESS);
+    }
+    let rec = Recording::open(dir.path()).unwrap();
+    assert_eq!(rec.layout(), Layout::Videos);
+    assert_eq!(rec.len(), FRAMES as usize);
+    // No timestamp file: the containers' times, 10 frames per second.
+    assert!((rec.frame_rate() - 10.0).abs() < 1e-6, "{}", rec.frame_rate());
+    assert_eq!(rec.capture_spread().map(|s| s.max_s), Some(0.0));
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    // In order, then backwards (a seek), then a jump.
+    for k in [0u32, 1, 2, 3, 4, 5, 1, 4, 0] {
+        let info = rec.read_frame_into(u64::from(k), false, &mut buf).unwrap();
+        assert_eq!(info.frame, u64::from(k));
+        let views = rec.views(&buf);
+        for c in 0..2u32 {
+            assert!(views[c as usize] == pixels(c, k).as_raw().as_slice(), "camera {c}, frame {k}: pixels differ");
+        }
+    }
+    // --start and --frames select a part, keeping frame numbers.
+    let options = OpenOptions { start: Some(2), frames: Some(3), ..OpenOptions::default() };
+    let part = Recording::open_with(dir.path(), &options).unwrap();
+    assert_eq!(part.frames().iter().map(|f| f.frame).collect::<Vec<_>>(), vec![2, 3, 4]);
+    let info = part.read_frame_into(0, false, &mut buf).unwrap();
+    assert_eq!(info.frame, 2);
+    assert!(part.views(&buf)[1] == pixels(1, 2).as_raw().as_slice());
+    // Preloading gives the same bytes.
+    let mut preloaded = Recording::open(dir.path()).unwrap();
+    preloaded.preload().unwrap();
+    let mut again = vec![0u8; rec.frame_set_len()];
+    preloaded.read_frame_into(3, false, &mut again).unwrap();
+    rec.read_frame_into(3, false, &mut buf).unwrap();
+    assert!(buf == again);
+}
+
+#[test]
+fn caliscope_sessions_group_frames_by_sync_index_and_match_cameras_by_number() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    // Pose2Sim-style names in the calibration, caliscope-style video names and cam_ids.
+    rig(&["cam_01", "cam_02"], W, H).save(dir.path().join("rig.toml")).unwrap();
+    for c in 0..2 {
+        encode(c, &dir.path().join(format!("cam_{}.mp4", c + 1)), &["-c:v", "mpeg4", "-q:v", "2"]);
+    }
+    // Capture indices start at 40; camera 2 misses sync 42 (its frame 2 belongs to 43).
+    let mut csv = String::from("sync_index,cam_id,frame_index,frame_time\n");
+    for sync in 40..46u32 {
+        let t = f64::from(sync) * 0.1;
+        csv.push_str(&format!("{sync},1,{sync},{t}\n"));
+        if sync != 42 {
+            csv.push_str(&format!("{sync},2,{},{}\n", if sync < 42 { sync } else { sync - 1 }, t + 0.02));
+        }
+    }
+    std::fs::write(dir.path().join("timestamps.csv"), csv).unwrap();
+    let rec = Recording::open(dir.path()).unwrap();
+    let numbers: Vec<u64> = rec.frames().iter().map(|f| f.frame).collect();
+    assert_eq!(numbers, vec![0, 1, 3, 4, 5], "sync 42 lacks camera 2, so frame 2 is left out");
+    assert!(rec.notes().iter().any(|n| n.contains("left out")), "{:?}", rec.notes());
+    let spread = rec.capture_spread().unwrap();
+    assert!((spread.max_s - 0.02).abs() < 1e-9 && (spread.median_s - 0.02).abs() < 1e-9, "{spread:?}");
+    assert!((rec.frames()[0].timestamp - 4.01).abs() < 1e-9);
+    // Frame 3 (sync 43) is video frame 3 of camera 1 and video frame 2 of camera 2.
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    rec.read_frame_into(2, false, &mut buf).unwrap();
+    let views = rec.views(&buf);
+    let close = |view: &[u8], expected: &image::RgbImage| {
+        let mean: f64 = view.iter().zip(expected.as_raw()).map(|(&a, &b)| f64::from(a.abs_diff(b))).sum::<f64>()
+            / view.len() as f64;
+        mean < 6.0
+    };
+    assert!(close(views[0], &pixels(0, 3)) && !close(views[0], &pixels(0, 2)), "camera 1 shows its frame 3");
+    assert!(close(views[1], &pixels(1, 2)) && !close(views[1], &pixels(1, 3)), "camera 2 shows its frame 2");
+}
+
+#[test]
+fn padded_videos_are_accepted_and_other_sizes_refused_naming_camera_and_sizes() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    encode(0, &dir.path().join("cam_0.mkv"), &LOSSLESS);
+    // The calibration says 8 px wider and 2 px taller: encoder padding.
+    rig(&["cam_0"], W + 8, H + 2).save(dir.path().join("rig.toml")).unwrap();
+    let rec = Recording::open(dir.path()).unwrap();
+    assert_eq!((rec.rig().cameras[0].width, rec.rig().cameras[0].height), (W, H));
+    assert_eq!(rec.rig().cameras[0].matrix, rig(&["cam_0"], W + 8, H + 2).cameras[0].matrix);
+    assert!(rec.notes().iter().any(|n| n.contains("padding")), "{:?}", rec.notes());
+    rig(&["cam_0"], W + 16, H).save(dir.path().join("rig.toml")).unwrap();
+    let e = Recording::open(dir.path()).unwrap_err().to_string();
+    assert!(e.contains("cam_0") && e.contains(&format!("{W}x{H}")) && e.contains(&format!("{}x{H}", W + 16)), "{e}");
+    // A camera without a video is refused listing both sides.
+    rig(&["cam_0", "side"], W, H).save(dir.path().join("rig.toml")).unwrap();
+    let e = Recording::open(dir.path()).unwrap_err().to_string();
+    assert!(e.contains("side") && e.contains("cam_0.mkv"), "{e}");
+}
+
+#[test]
+fn a_corrupt_frame_in_the_middle_is_reported_and_the_rest_reads() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    rig(&["cam_0"], W, H).save(dir.path().join("rig.toml")).unwrap();
+    let path = dir.path().join("cam_0.avi");
+    encode(0, &path, &["-c:v", "mjpeg", "-q:v", "2"]);
+    // Every MJPEG frame starts with a JPEG start-of-image marker; wipe frame 2's headers
+    // (quantisation and Huffman tables, frame header) so that it cannot be decoded.
+    let mut bytes = std::fs::read(&path).unwrap();
+    let starts: Vec<usize> =
+        bytes.windows(3).enumerate().filter(|(_, w)| *w == [0xFF, 0xD8, 0xFF]).map(|(i, _)| i).collect();
+    assert_eq!(starts.len(), FRAMES as usize, "one JPEG per frame");
+    for b in &mut bytes[starts[2] + 2..starts[2] + 400] {
+        *b = 0;
+    }
+    std::fs::write(&path, bytes).unwrap();
+    let rec = Recording::open(dir.path()).unwrap();
+    assert_eq!(rec.len(), FRAMES as usize, "the container still lists every frame");
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    for k in 0..FRAMES {
+        let read = rec.read_frame_into(u64::from(k), false, &mut buf);
+        if k == 2 {
+            let e = read.unwrap_err();
+            assert!(e.is_bad_frame(), "{e}");
+            let e = e.to_string();
+            assert!(e.contains("cam_0") && e.contains("frame 2"), "{e}");
+        } else {
+            read.unwrap_or_else(|e| panic!("frame {k}: {e}"));
+            let mean: f64 = buf.iter().zip(pixels(0, k).as_raw()).map(|(&a, &b)| f64::from(a.abs_diff(b))).sum::<f64>()
+                / buf.len() as f64;
+            assert!(mean < 6.0, "frame {k} is its own image after the corrupt one (mean difference {mean})");
+        }
+    }
+}
+
+#[test]
+fn a_stream_without_colorimetry_decodes_as_ffmpeg_decodes_it() {
+    if !have_ffmpeg() {
+        return;
+    }
+    // 1280x720 with no colour tags, as OpenCV writes webcam recordings: GStreamer would guess
+    // BT.709 from the size; the writers' (and ffmpeg's) convention is BT.601.
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (1280u32, 720u32);
+    let frame = image::RgbImage::from_fn(w, h, |x, y| {
+        image::Rgb([
+            ((x / 160) * 36) as u8,
+            (255 - (y / 90) * 30) as u8,
+            if (x / 320 + y / 180) % 2 == 0 { 230 } else { 20 },
+        ])
+    });
+    let source = dir.path().join("frame.png");
+    frame.save(&source).unwrap();
+    let video = dir.path().join("cam_0.mp4");
+    let status = Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-y", "-i"])
+        .arg(&source)
+        .args(["-c:v", "mpeg4", "-q:v", "2", "-pix_fmt", "yuv420p"])
+        .arg(&video)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let reference = Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-i"])
+        .arg(&video)
+        .args(["-f", "rawvideo", "-pix_fmt", "rgb24", "-"])
+        .output()
+        .unwrap();
+    assert!(reference.status.success());
+    rig(&["cam_0"], w, h).save(dir.path().join("rig.toml")).unwrap();
+    let rec = Recording::open(dir.path()).unwrap();
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    rec.read_frame_into(0, false, &mut buf).unwrap();
+    assert_eq!(reference.stdout.len(), buf.len());
+    let mean: f64 =
+        buf.iter().zip(&reference.stdout).map(|(&a, &b)| f64::from(a.abs_diff(b))).sum::<f64>() / buf.len() as f64;
+    assert!(mean < 1.5, "mean difference from ffmpeg's decoding: {mean}");
+}
