@@ -152,15 +152,16 @@ fn reported_losses(log: &str) -> BTreeSet<u64> {
     lost
 }
 
-fn kill_mid_stream(binary: &str, rec_dir: &Path, frames: u32) {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("trajectories.jsonl");
+/// Starts a replay of `rec_dir` at its recorded pace into `out` and, once 40 trajectory
+/// samples are written, kills this pipeline's `binary` with SIGKILL. Returns the run, its log
+/// and when the kill happened.
+fn replay_and_kill(binary: &str, rec_dir: &Path, out: &Path) -> (Child, Log, Instant) {
     let prefix = unique_prefix(binary);
     let mut run =
-        launcher(&["--recording", str(rec_dir), "--out", str(&out), "--services", &prefix, "--pace", "recorded"]);
+        launcher(&["--recording", str(rec_dir), "--out", str(out), "--services", &prefix, "--pace", "recorded"]);
     let log = Log::capture(&mut run);
     let started = Instant::now();
-    while lines_in(&out) < 40 {
+    while lines_in(out) < 40 {
         assert!(started.elapsed() < Duration::from_secs(120), "no trajectories:\n{}", log.text());
         assert!(run.try_wait().unwrap().is_none(), "the run ended early:\n{}", log.text());
         std::thread::sleep(Duration::from_millis(10));
@@ -169,6 +170,13 @@ fn kill_mid_stream(binary: &str, rec_dir: &Path, frames: u32) {
     assert_eq!(victims.len(), 1, "one {binary} of this pipeline");
     let killed_at = Instant::now();
     nix::sys::signal::kill(nix::unistd::Pid::from_raw(victims[0]), nix::sys::signal::Signal::SIGKILL).unwrap();
+    (run, log, killed_at)
+}
+
+fn kill_mid_stream(binary: &str, rec_dir: &Path, frames: u32) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("trajectories.jsonl");
+    let (mut run, log, killed_at) = replay_and_kill(binary, rec_dir, &out);
 
     let status = wait_with_timeout(&mut run, Duration::from_secs(300));
     let text = log.text();
@@ -204,6 +212,72 @@ fn kill_mid_stream(binary: &str, rec_dir: &Path, frames: u32) {
     let after_gap: Vec<_> = records.iter().filter(|r| r.frame > *missing.last().unwrap() + 10).cloned().collect();
     let scores = evaluate_tracks(&rec, &after_gap).unwrap();
     assert!(scores.head.agreement >= 0.9, "{scores:?}");
+}
+
+#[test]
+fn killing_ingest_mid_stream_resumes_where_the_stream_was() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 120u32;
+    let rec_dir = render_preset(dir.path(), "signer-3cam", frames, None);
+    let out = dir.path().join("trajectories.jsonl");
+    let (mut run, log, _) = replay_and_kill("handflow-ingest", &rec_dir, &out);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
+    let text = log.text();
+    assert!(status.success(), "the run failed after the kill:\n{text}");
+    assert!(text.contains("restarting it"), "the launcher restarts ingest:\n{text}");
+    assert!(text.contains("resuming the stream at frame set"), "ingest resumes, not from frame 0:\n{text}");
+    let records = read_tracks(&out).unwrap();
+    let present: BTreeSet<u64> = records.iter().map(|r| r.frame).collect();
+    assert_eq!(present.len(), records.len(), "no frame twice: the stream did not start again at frame 0");
+    let order: Vec<u64> = records.iter().map(|r| r.frame).collect();
+    assert!(order.windows(2).all(|w| w[0] < w[1]), "frames in order: {order:?}");
+    let missing: BTreeSet<u64> = (1..u64::from(frames)).filter(|f| !present.contains(f)).collect();
+    assert_eq!(reported_losses(&text), missing, "every frame is published or reported lost");
+    assert!(missing.len() <= 3, "at most the frames in flight are lost: {missing:?}");
+    assert!(present.contains(&(u64::from(frames) - 1)), "the stream goes on to its last frame");
+    eprintln!("ingest killed and resumed; frames lost: {missing:?}");
+}
+
+#[test]
+fn a_truncated_image_in_the_middle_is_skipped_by_track_and_by_run_and_every_other_frame_is_kept() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 30u32;
+    let rec_dir = render_preset(dir.path(), "signer-3cam", frames, Some((160, 120)));
+    let rig = Recording::open(&rec_dir).unwrap().rig().clone();
+    let broken = rec_dir.join(&rig.cameras[1].name).join("000004.png");
+    let bytes = std::fs::read(&broken).unwrap();
+    std::fs::write(&broken, &bytes[..bytes.len() / 2]).unwrap();
+    let expected: Vec<u64> = (1..u64::from(frames)).filter(|&f| f != 4).collect();
+
+    let mut offline = Vec::new();
+    let summary = track_recording(&rec_dir, &TrackOptions::default(), |r, _, _| {
+        offline.push(r.clone());
+        Ok(())
+    })
+    .unwrap();
+    assert_eq!(summary.skipped_frames, 1);
+    assert_eq!(offline.iter().map(|r| r.frame).collect::<Vec<_>>(), expected, "every other frame is tracked");
+    for r in &offline {
+        assert_eq!(r.dropped_frames, u64::from(r.frame > 4), "frame {}: the skipped set is counted", r.frame);
+    }
+
+    let out = dir.path().join("trajectories.jsonl");
+    let prefix = unique_prefix("truncated");
+    let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
+    let log = Log::capture(&mut run);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
+    let text = log.text();
+    assert!(status.success(), "the run failed:\n{text}");
+    assert!(!text.contains("restarting it"), "no stage died:\n{text}");
+    assert!(text.contains("frame set 4 skipped") && text.contains("000004.png"), "one error naming the frame:\n{text}");
+    assert_eq!(reported_losses(&text), BTreeSet::from([4]), "{text}");
+    let file = std::fs::read_to_string(&out).unwrap();
+    assert_eq!(file.lines().count(), offline.len(), "{text}");
+    for (line, record) in file.lines().zip(&offline) {
+        assert_eq!(line, serde_json::to_string(record).unwrap(), "replay and `handflow track` agree");
+    }
 }
 
 #[test]

@@ -43,6 +43,9 @@ enum Command {
     Track(TrackArgs),
     /// Draw the last positions of each trajectory on every camera's images.
     Overlay(OverlayArgs),
+    /// What the tracker saw at one frame: each camera's skin map, faces, rays, clusters and
+    /// tracks as pictures, a montage of them all, and a summary.
+    Inspect(InspectArgs),
     /// Run the streaming pipeline: ingest, flow, cluster and publish processes over shared
     /// memory. Without arguments, the demo on the built-in `signer-3cam` scene.
     Run(RunArgs),
@@ -54,6 +57,21 @@ enum Command {
     /// Inspect a calibration (any supported format) or convert it to handflow's rig TOML.
     #[command(subcommand)]
     Rig(crate::commands::rig::RigCommand),
+    /// Write a recording (videos or images) in the image-folder layout: rig.toml, frames.csv,
+    /// one PNG folder per camera.
+    Import(ImportArgs),
+}
+
+#[derive(Args, Debug)]
+struct ImportArgs {
+    /// Recording folder (videos or image folders, with calibration and capture times).
+    #[arg(long)]
+    recording: PathBuf,
+    /// Output folder (new or empty).
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    part: RecordingArgs,
 }
 
 #[derive(Args, Debug)]
@@ -73,17 +91,37 @@ struct OverlayArgs {
 }
 
 #[derive(Args, Debug)]
-struct TrackArgs {
-    /// Recording folder: one video per camera, or one image folder per camera, with its
-    /// calibration and capture times.
+struct InspectArgs {
+    /// Frame number to inspect (as in the recording's frame table; not the first frame
+    /// read, which has no estimate). The tracker runs from the first frame read up to it.
     #[arg(long)]
-    recording: PathBuf,
+    frame: u64,
+    /// Output folder: one folder of pictures per camera and `montage.png`.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    tracker: TrackerArgs,
+}
+
+#[derive(Args, Debug)]
+struct TrackArgs {
     /// Output file (default: standard output).
     #[arg(long)]
     out: Option<PathBuf>,
     /// Write CSV (frame, t, then per object x y z vx vy vz confidence state) instead of JSON Lines.
     #[arg(long)]
     csv: bool,
+    #[command(flatten)]
+    tracker: TrackerArgs,
+}
+
+/// What the tracker runs on and how: shared by `track` and `inspect`.
+#[derive(Args, Debug)]
+struct TrackerArgs {
+    /// Recording folder: one video per camera, or one image folder per camera, with its
+    /// calibration and capture times.
+    #[arg(long)]
+    recording: PathBuf,
     #[command(flatten)]
     part: RecordingArgs,
     /// The world's up direction `x,y,z`, overriding the calibration's or the estimate from
@@ -95,6 +133,12 @@ struct TrackArgs {
     no_centre_correction: bool,
     #[command(flatten)]
     engine: EngineArgs,
+}
+
+impl TrackerArgs {
+    fn options(&self) -> TrackOptions {
+        track_options(&self.engine, &self.part, self.up, !self.no_centre_correction)
+    }
 }
 
 /// Which calibration and which part of a recording to read.
@@ -234,6 +278,9 @@ struct EvalTracksArgs {
     /// OpenPose keypoint order (25 keypoints are BODY_25 unless told; 18 are COCO).
     #[arg(long, value_enum, requires = "reference")]
     keypoints: Option<crate::eval::openpose::KeypointOrder>,
+    /// Calibration file to use instead of the recording's own.
+    #[arg(long)]
+    calibration: Option<PathBuf>,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
@@ -268,6 +315,24 @@ enum BenchCommand {
     IpcReceiver(IpcReceiverArgs),
     /// The live pipeline on a recording at its recorded rate: latency and sustained rate.
     Pipeline(BenchPipelineArgs),
+    /// Reading a recording's videos into frame sets against reading the same frames as PNGs.
+    Decode(BenchDecodeArgs),
+}
+
+#[derive(Args, Debug)]
+struct BenchDecodeArgs {
+    /// Recording folder of videos (default: the shared real session).
+    #[arg(long, default_value = "../shared/data/real/caliscope-hands")]
+    recording: PathBuf,
+    /// Read only the first N frame sets.
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Passes over each source (the fastest is reported).
+    #[arg(long, default_value_t = 3)]
+    passes: usize,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args, Debug)]
@@ -429,7 +494,13 @@ macro_rules! out {
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
     // The launcher reports what its stages do; other commands only warn.
-    init_logging(if matches!(cli.command, None | Some(Command::Run(_))) { "info" } else { "warn" });
+    init_logging(match &cli.command {
+        None | Some(Command::Run(_)) => "info",
+        // The few state changes a user of new footage needs (faces found or lost, how much
+        // of each image is skin, why tracks have not started), without per-frame lines.
+        Some(Command::Track(_) | Command::Inspect(_)) => TRACKER_LOG,
+        _ => "warn",
+    });
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) if is_broken_pipe(&err) => ExitCode::SUCCESS,
@@ -443,6 +514,10 @@ pub fn main() -> ExitCode {
 fn is_broken_pipe(err: &anyhow::Error) -> bool {
     err.chain().any(|e| e.downcast_ref::<std::io::Error>().is_some_and(|e| e.kind() == std::io::ErrorKind::BrokenPipe))
 }
+
+/// Default log filter of `track` and `inspect`: warnings, and the info lines of the flow
+/// stream and the cluster stage (state changes only) and of the tracker command itself.
+const TRACKER_LOG: &str = "warn,handflow_flow::stream=info,handflow_cluster::stage=info,handflow::commands=info";
 
 fn init_logging(default_level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("HANDFLOW_LOG")
@@ -459,6 +534,7 @@ fn run(cli: Cli) -> Result<()> {
         None => run_streaming(&RunArgs::default()),
         Some(Command::FlowDemo) => demo(),
         Some(Command::Rig(command)) => crate::commands::rig::run(&command),
+        Some(Command::Import(args)) => import(&args),
         Some(Command::Run(args)) => run_streaming(&args),
         Some(Command::Tap(args)) => {
             crate::commands::tap::tap(&args.service, &args.services, args.count, &mut std::io::stdout().lock())
@@ -469,6 +545,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(BenchCommand::Accuracy(args))) => bench_accuracy(&args),
         Some(Command::Bench(BenchCommand::Render(args))) => bench_render(&args),
         Some(Command::Bench(BenchCommand::Cluster(args))) => bench_cluster(&args),
+        Some(Command::Bench(BenchCommand::Decode(args))) => bench_decode(&args),
         Some(Command::Bench(BenchCommand::Ipc(args))) => bench_ipc(&args),
         Some(Command::Bench(BenchCommand::IpcReceiver(args))) => {
             crate::bench::stream::ipc_receiver(&args.services, args.samples)
@@ -477,6 +554,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Render(args)) => render(&args),
         Some(Command::Track(args)) => track(&args),
         Some(Command::Overlay(args)) => overlay(&args),
+        Some(Command::Inspect(args)) => inspect(&args),
         Some(Command::Eval(EvalCommand::Tracks(args))) => eval_tracks(&args),
     }
 }
@@ -919,7 +997,7 @@ fn progress(done: usize, total: usize) {
 
 fn track(args: &TrackArgs) -> Result<()> {
     use std::io::Write as _;
-    let options = track_options(&args.engine, &args.part, args.up, !args.no_centre_correction);
+    let options = args.tracker.options();
     // Written as it goes, each record flushed: a failure late in a long recording keeps
     // every earlier frame.
     let to_file = args.out.is_some();
@@ -938,7 +1016,7 @@ fn track(args: &TrackArgs) -> Result<()> {
         }
         writeln!(out, "{header}")?;
     }
-    let summary = track_recording(&args.recording, &options, |record, done, total| {
+    let summary = track_recording(&args.tracker.recording, &options, |record, done, total| {
         if args.csv {
             let mut line = format!("{},{}", record.frame, record.t);
             for name in handflow_cluster::tracks::OBJECTS {
@@ -981,7 +1059,7 @@ fn track(args: &TrackArgs) -> Result<()> {
         eprintln!(
             "tracked {} frames of `{}` at {:.1} frames per second into `{}`{skipped}",
             summary.frames,
-            args.recording.display(),
+            args.tracker.recording.display(),
             summary.frames_per_second,
             path.display()
         );
@@ -1008,6 +1086,52 @@ fn bench_cluster(args: &BenchClusterArgs) -> Result<()> {
     Ok(())
 }
 
+fn bench_decode(args: &BenchDecodeArgs) -> Result<()> {
+    let r = crate::bench::decode::bench_decode(&args.recording, args.frames, args.passes)?;
+    if args.json {
+        out!("{}", serde_json::to_string(&r)?);
+        return Ok(());
+    }
+    out!(
+        "`{}`: {} frame sets of {} x {}x{}, fastest of {} passes, {} threads",
+        r.recording,
+        r.frame_sets,
+        r.cameras,
+        r.width,
+        r.height,
+        r.passes,
+        r.threads
+    );
+    out!("  videos (GStreamer)  {:7.1} frame sets per second", r.video_sets_per_second);
+    out!("  the same as PNGs    {:7.1} frame sets per second", r.png_sets_per_second);
+    out!("  videos vs PNGs      {:7.2}x", r.video_vs_png);
+    Ok(())
+}
+
+fn import(args: &ImportArgs) -> Result<()> {
+    let report = crate::commands::import::import_recording(&args.recording, &args.part.options(), &args.out, progress)?;
+    let skipped = match report.skipped.len() {
+        0 => String::new(),
+        n => format!(" ({n} unreadable frame sets left out)"),
+    };
+    out!("wrote {} frame sets into `{}`{skipped}", report.frame_sets, args.out.display());
+    Ok(())
+}
+
+fn inspect(args: &InspectArgs) -> Result<()> {
+    let options = args.tracker.options();
+    let summary =
+        crate::commands::inspect::inspect_recording(&args.tracker.recording, &options, args.frame, &args.out)?;
+    out!("{}", summary.text.trim_end());
+    out!(
+        "wrote {} pictures into `{}` (montage: `{}`)",
+        summary.files.len(),
+        args.out.display(),
+        args.out.join("montage.png").display()
+    );
+    Ok(())
+}
+
 fn overlay(args: &OverlayArgs) -> Result<()> {
     let options = handflow_ingest::OpenOptions { calibration: args.calibration.clone(), ..Default::default() };
     let rec = handflow_ingest::Recording::open_with(&args.recording, &options)?;
@@ -1018,12 +1142,13 @@ fn overlay(args: &OverlayArgs) -> Result<()> {
 }
 
 fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
-    let rec = handflow_ingest::Recording::open(&args.recording)?;
+    let part = RecordingArgs { calibration: args.calibration.clone(), ..RecordingArgs::default() };
+    let rec = handflow_ingest::Recording::open_with(&args.recording, &part.options())?;
     let records = match &args.tracks {
         Some(path) => read_tracks(path)?,
         None => {
             let mut records = Vec::new();
-            let options = track_options(&args.engine, &RecordingArgs::default(), None, true);
+            let options = track_options(&args.engine, &part, None, true);
             track_recording(&args.recording, &options, |r, done, total| {
                 records.push(r.clone());
                 progress(done, total);

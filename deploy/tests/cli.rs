@@ -6,9 +6,12 @@
 
 #![allow(clippy::unwrap_used)]
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
 
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use common::{describe, handflow};
 use handflow::eval::middlebury::{read_pfm, Scene};
 use serde_json::{Map, Value};
 use tempfile::TempDir;
@@ -83,25 +86,6 @@ fn synthetic_scene(tmp: &Path, name: &str) -> PathBuf {
     let dir = tmp.join(name);
     scene.save(&dir).expect("save the synthetic scene");
     dir
-}
-
-/// Runs the binary with `args` and returns what it did.
-fn handflow(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_handflow"))
-        .args(args)
-        .env_remove("HANDFLOW_LOG")
-        .output()
-        .expect("run the handflow binary")
-}
-
-/// The process's stdout and stderr, for assertion messages.
-fn describe(output: &Output) -> String {
-    format!(
-        "status {:?}\n--- stdout ---\n{}\n--- stderr ---\n{}",
-        output.status,
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    )
 }
 
 /// Asserts a successful run whose stdout is exactly one JSON object, and returns it.

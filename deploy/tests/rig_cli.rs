@@ -3,9 +3,12 @@
 
 #![allow(clippy::unwrap_used)]
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
 
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use common::handflow;
 use handflow_protocol::Rig;
 use nalgebra::Point3;
 
@@ -14,10 +17,6 @@ const FORMATS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/ri
 
 fn fixture(name: &str) -> PathBuf {
     Path::new(FORMATS).join(name)
-}
-
-fn handflow(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_handflow")).args(args).output().expect("run handflow")
 }
 
 fn stdout(output: &Output) -> String {

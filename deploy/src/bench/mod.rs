@@ -1,4 +1,5 @@
 //! Speed measurements; each reports against a baseline measured in the same run.
 
 pub mod cluster;
+pub mod decode;
 pub mod stream;

@@ -1,5 +1,7 @@
 //! The commands a user runs on footage and pipelines, one module each.
 
+pub mod import;
+pub mod inspect;
 pub mod launcher;
 pub mod overlay;
 pub mod rig;

@@ -241,6 +241,7 @@ mod tests {
             frame,
             t: frame as f64 / 30.0,
             objects: OBJECTS.iter().zip(objects).map(|(n, (p, s))| ((*n).to_owned(), sample(p, s))).collect(),
+            dropped_frames: 0,
         }
     }
 

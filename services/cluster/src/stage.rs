@@ -8,8 +8,8 @@ use handflow_protocol::messages::ScenePoint;
 use handflow_protocol::Camera;
 use nalgebra::{Point3, Vector3};
 
-use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, Component, EmConfig};
-use crate::tracks::{State, Tracker, TrackerConfig};
+use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, Component, EmConfig, EmFit};
+use crate::tracks::{Measurement, NotStarted, State, Tracker, TrackerConfig};
 use crate::WeightedPoint;
 
 /// The largest half-thickness the centre correction assumes for a hand, metres: an adult
@@ -51,6 +51,36 @@ pub struct ClusterStage {
     seconds: f64,
     last_seconds: f64,
     frames: u64,
+    /// The last frame's clusters, as the tracker saw them (after the centre correction).
+    last_fit: Option<EmFit>,
+    /// Usable points of the last frame.
+    last_points: usize,
+    /// What was last reported about the tracks' start (see [`ClusterStage::start_status`]),
+    /// so that it is logged once per change, not once per frame.
+    reported: Option<StartStatus>,
+}
+
+/// Whether the tracks run, and if not why, as [`ClusterStage::start_status`] gives it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum StartStatus {
+    /// Tracks have started (some may be predicted or lost since).
+    Running,
+    /// The frame held no usable point: nothing the reference camera saw was estimated as
+    /// skin.
+    NoSkin,
+    /// Points, but the first labelling found no head and two hands in them.
+    NotStarted(NotStarted),
+}
+
+impl StartStatus {
+    /// The cause without its figures (one log line per change of it).
+    pub fn cause(&self) -> &'static str {
+        match self {
+            StartStatus::Running => "running",
+            StartStatus::NoSkin => "no skin",
+            StartStatus::NotStarted(why) => why.cause(),
+        }
+    }
 }
 
 impl ClusterStage {
@@ -81,6 +111,9 @@ impl ClusterStage {
             seconds: 0.0,
             last_seconds: 0.0,
             frames: 0,
+            last_fit: None,
+            last_points: 0,
+            reported: None,
         }
     }
 
@@ -138,10 +171,59 @@ impl ClusterStage {
                 mass,
             }
         });
+        self.last_points = self.points.iter().filter(|p| p.is_usable()).count();
+        self.last_fit = fit;
         self.last_seconds = started.elapsed().as_secs_f64();
         self.seconds += self.last_seconds;
         self.frames += 1;
+        self.report_start_status(t);
         estimates
+    }
+
+    /// Logs the tracks' start status when its cause changed since the last report (at info:
+    /// the one thing a user of new footage must see when nothing is tracked).
+    fn report_start_status(&mut self, t: f64) {
+        let status = self.start_status();
+        if self.reported.is_some_and(|r| r.cause() == status.cause()) {
+            return;
+        }
+        match status {
+            StartStatus::Running => tracing::info!("tracks started at {t:.3} s"),
+            StartStatus::NoSkin => {
+                tracing::info!("tracks not started at {t:.3} s: no skin points in the reference view")
+            }
+            StartStatus::NotStarted(why) => {
+                tracing::info!("tracks not started at {t:.3} s: {why} ({} points)", self.last_points)
+            }
+        }
+        self.reported = Some(status);
+    }
+
+    /// Whether the tracks run after the last update, and if not why.
+    pub fn start_status(&self) -> StartStatus {
+        match self.tracker.not_started() {
+            None => StartStatus::Running,
+            Some(_) if self.last_points == 0 => StartStatus::NoSkin,
+            Some(why) => StartStatus::NotStarted(why),
+        }
+    }
+
+    /// The last frame's clusters (EM components, including the clutter components), with
+    /// centres moved to the objects' middles when the correction is on: what the tracker
+    /// labelled. `None` when the frame had no usable point or EM failed.
+    pub fn last_fit(&self) -> Option<&EmFit> {
+        self.last_fit.as_ref()
+    }
+
+    /// Per object (head, left hand, right hand), the cluster of [`ClusterStage::last_fit`]
+    /// that measured it in the last update.
+    pub fn assigned(&self) -> [Option<Measurement>; 3] {
+        self.tracker.assigned()
+    }
+
+    /// Usable points (finite, positive weight) of the last update.
+    pub fn last_point_count(&self) -> usize {
+        self.last_points
     }
 
     /// Mean time per [`ClusterStage::update`], seconds.
@@ -241,5 +323,28 @@ mod tests {
             assert!((rolled.signer_left - upright.signer_left).norm() < 1e-12, "roll {roll}");
             assert_eq!(rolled.up, Vector3::y());
         }
+    }
+
+    #[test]
+    fn the_start_status_names_missing_skin_then_runs() {
+        let mut stage = ClusterStage::new(&reference(0.0), Vector3::y(), true);
+        stage.update(0.0, 30.0, 0.0, &[]);
+        assert_eq!(stage.start_status(), StartStatus::NoSkin);
+        assert!(stage.last_fit().is_none());
+        let blob = |x: f32, y: f32| {
+            (0..200).map(move |i| ScenePoint {
+                position: [x + (i % 10) as f32 * 0.004, y + (i / 10) as f32 * 0.004, 0.0],
+                velocity: [0.0; 3],
+                weight: 1.0,
+                skin: 1.0,
+            })
+        };
+        // Head and two hands within reach: the tracks start.
+        let all: Vec<ScenePoint> = blob(0.0, 1.6).chain(blob(0.3, 1.1)).chain(blob(-0.3, 1.1)).collect();
+        stage.update(1.0 / 30.0, 30.0, 0.0, &all);
+        assert_eq!(stage.start_status(), StartStatus::Running);
+        assert_eq!(stage.last_point_count(), 600);
+        assert!(stage.last_fit().is_some_and(|f| f.components.len() >= 3));
+        assert!(stage.assigned().iter().all(Option::is_some));
     }
 }

@@ -31,6 +31,62 @@ impl State {
     }
 }
 
+/// Why the first labelling did not start the tracks (see [`Tracker::not_started`]). Until
+/// it succeeds every track is lost, so this is what a user needs to see first on footage
+/// where nothing is tracked.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum NotStarted {
+    /// The frame gave no clusters at all: no usable point (no skin in the reference view,
+    /// or nothing estimated on it), so there is no head cluster either.
+    NoClusters,
+    /// Fewer than three clusters hold enough of the frame's weight
+    /// ([`TrackerConfig::min_mass_share`]): a head at most, no two hands.
+    TooFewClusters {
+        /// Clusters kept.
+        clusters: usize,
+    },
+    /// The highest cluster (the head) has fewer than two others within reach
+    /// ([`TrackerConfig::reach_m`]).
+    HandsOutOfReach {
+        /// Clusters within reach of the head.
+        within_reach: usize,
+        /// Distance from the head of the nearest cluster beyond reach, metres.
+        nearest_beyond_m: Option<f64>,
+        /// The reach, metres.
+        reach_m: f64,
+    },
+}
+
+impl NotStarted {
+    /// The cause without its figures: two values with the same cause are one state to
+    /// report (the figures change every frame).
+    pub fn cause(&self) -> &'static str {
+        match self {
+            NotStarted::NoClusters => "no clusters",
+            NotStarted::TooFewClusters { .. } => "too few clusters",
+            NotStarted::HandsOutOfReach { .. } => "hands out of reach",
+        }
+    }
+}
+
+impl std::fmt::Display for NotStarted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            NotStarted::NoClusters => write!(f, "no clusters, so no head cluster"),
+            NotStarted::TooFewClusters { clusters } => {
+                write!(f, "{clusters} cluster(s) with enough weight, 3 needed (a head and two hands)")
+            }
+            NotStarted::HandsOutOfReach { within_reach, nearest_beyond_m, reach_m } => {
+                write!(f, "{within_reach} cluster(s) within {reach_m} m of the head cluster (the highest), 2 needed")?;
+                match nearest_beyond_m {
+                    Some(d) => write!(f, "; the nearest other is {d:.2} m away"),
+                    None => Ok(()),
+                }
+            }
+        }
+    }
+}
+
 /// Parameters of labelling and prediction.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrackerConfig {
@@ -129,6 +185,8 @@ pub struct Tracker {
     reinitialisations: u64,
     /// Per track, the cluster that measured it in the last update.
     assigned: [Option<Measurement>; 3],
+    /// Why the last update's first labelling failed (`None` once tracks run).
+    not_started: Option<NotStarted>,
 }
 
 impl Tracker {
@@ -143,7 +201,15 @@ impl Tracker {
             time: 0.0,
             reinitialisations: 0,
             assigned: [None; 3],
+            not_started: None,
         }
+    }
+
+    /// Why the last update started no track: `Some` while no track has started (or every
+    /// track is lost) and the last update's clusters could not be labelled; `None` when the
+    /// last update measured or predicted tracks.
+    pub fn not_started(&self) -> Option<NotStarted> {
+        self.not_started
     }
 
     /// Per track (head, left hand, right hand), the cluster that measured it in the last
@@ -199,9 +265,16 @@ impl Tracker {
             None => (Vec::new(), Vec::new()),
         };
         self.assigned = [None; 3];
+        self.not_started = None;
         let tracks = match self.predictions(t) {
             Some(predicted) => self.follow(predicted, &clusters),
-            None => self.start(&clusters),
+            None => match self.start(&clusters) {
+                Ok(tracks) => Some(tracks),
+                Err(why) => {
+                    self.not_started = Some(why);
+                    None
+                }
+            },
         };
         self.time = t;
         self.assigned = self.assigned.map(|a| a.map(|m| Measurement { cluster: indices[m.cluster], ..m }));
@@ -222,18 +295,27 @@ impl Tracker {
 
     /// First labelling: head is the highest cluster, the hands are the two largest within
     /// reach of it, told apart by the signer's left. Needs three such clusters (until then
-    /// no track starts).
-    fn start(&mut self, clusters: &[&Component]) -> Option<[Track; 3]> {
-        if clusters.len() < 3 {
-            return None;
-        }
+    /// no track starts, and the error says which is missing).
+    fn start(&mut self, clusters: &[&Component]) -> Result<[Track; 3], NotStarted> {
         let head = (0..clusters.len())
-            .max_by(|&a, &b| clusters[a].position.dot(&self.up).total_cmp(&clusters[b].position.dot(&self.up)))?;
-        let mut hands: Vec<usize> = (0..clusters.len())
-            .filter(|&k| k != head && (clusters[k].position - clusters[head].position).norm() <= self.config.reach_m)
-            .collect();
+            .max_by(|&a, &b| clusters[a].position.dot(&self.up).total_cmp(&clusters[b].position.dot(&self.up)))
+            .ok_or(NotStarted::NoClusters)?;
+        if clusters.len() < 3 {
+            return Err(NotStarted::TooFewClusters { clusters: clusters.len() });
+        }
+        let distance = |k: usize| (clusters[k].position - clusters[head].position).norm();
+        let mut hands: Vec<usize> =
+            (0..clusters.len()).filter(|&k| k != head && distance(k) <= self.config.reach_m).collect();
         if hands.len() < 2 {
-            return None;
+            let nearest_beyond_m = (0..clusters.len())
+                .filter(|&k| k != head && distance(k) > self.config.reach_m)
+                .map(distance)
+                .min_by(f64::total_cmp);
+            return Err(NotStarted::HandsOutOfReach {
+                within_reach: hands.len(),
+                nearest_beyond_m,
+                reach_m: self.config.reach_m,
+            });
         }
         // Of the remaining, the two largest are the hands.
         hands.sort_by(|&a, &b| clusters[b].mass.total_cmp(&clusters[a].mass));
@@ -241,7 +323,7 @@ impl Tracker {
         let side = |k: usize| clusters[k].position.dot(&self.signer_left);
         let (left, right) = if side(hands[0]) >= side(hands[1]) { (hands[0], hands[1]) } else { (hands[1], hands[0]) };
         self.assigned = [head, left, right].map(|cluster| Some(Measurement { cluster, pull: 1.0 }));
-        Some([head, left, right].map(|k| measured(clusters[k], 1.0)))
+        Ok([head, left, right].map(|k| measured(clusters[k], 1.0)))
     }
 
     /// Later frames: the assignment of clusters to tracks that best matches the predicted
@@ -527,5 +609,41 @@ mod tests {
             Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 0.001), cluster(-0.2, 1.0, 0.0, 1.0)])),
         );
         assert!(tracks.iter().all(|k| k.state == State::Lost), "two real clusters cannot start three tracks");
+    }
+
+    #[test]
+    fn the_start_says_why_it_failed() {
+        let mut t = tracker();
+        t.update(0.0, None);
+        assert_eq!(t.not_started(), Some(NotStarted::NoClusters), "no points: no head cluster");
+        t.update(0.0, Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 1.0)])));
+        assert_eq!(t.not_started(), Some(NotStarted::TooFewClusters { clusters: 2 }));
+        // A cluster below the weight floor is not counted.
+        t.update(
+            0.0,
+            Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 1.0), cluster(-0.2, 1.0, 0.0, 1e-4)])),
+        );
+        assert_eq!(t.not_started(), Some(NotStarted::TooFewClusters { clusters: 2 }));
+        // One hand within reach, the other (a skin-coloured object) 1.5 m to the side.
+        t.update(
+            0.0,
+            Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 1.0), cluster(1.5, 1.4, 0.0, 1.0)])),
+        );
+        match t.not_started() {
+            Some(NotStarted::HandsOutOfReach { within_reach: 1, nearest_beyond_m: Some(d), reach_m }) => {
+                assert!((d - 2.29f64.sqrt()).abs() < 1e-12, "{d}");
+                assert_eq!(reach_m, 1.0);
+            }
+            other => panic!("expected hands out of reach, got {other:?}"),
+        }
+        assert_eq!(t.not_started().map(|w| w.cause()), Some("hands out of reach"));
+        assert!(t.not_started().is_some_and(|w| w.to_string().contains("1.51 m")));
+        // A good frame starts the tracks and clears the reason.
+        t.update(
+            0.0,
+            Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 1.0), cluster(-0.2, 1.0, 0.0, 1.0)])),
+        );
+        assert_eq!(t.not_started(), None);
+        assert!(t.tracks().is_some());
     }
 }

@@ -280,6 +280,14 @@ impl SceneFlowEngine {
         self.skin_maps[slot].get(camera)?.get(y * cam.width as usize + x).copied()
     }
 
+    /// The skin map of camera `camera` in the frame of the last estimate: the clamped log10
+    /// skin ratio of every full-resolution pixel, row-major (what [`Self::skin_at`] reads;
+    /// `None` without `skin` coverage, before the first estimate or for an unknown camera).
+    pub fn skin_map(&self, camera: usize) -> Option<&[f32]> {
+        let slot = self.posterior_slot?;
+        self.skin_maps[slot].get(camera).map(Vec::as_slice).filter(|m| !m.is_empty())
+    }
+
     /// The configuration in use.
     pub fn config(&self) -> &EngineConfig {
         &self.config

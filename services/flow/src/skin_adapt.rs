@@ -4,7 +4,7 @@
 
 use handflow_protocol::Camera;
 
-use crate::face_fusion::{fuse_faces_remembering, KnownFace};
+use crate::face_fusion::{fuse_faces_remembering, FusedFaces, KnownFace};
 use crate::faces::{FaceBox, FaceDetector, Region};
 use crate::skin::SkinModel;
 
@@ -46,6 +46,10 @@ pub struct SkinAdapter {
     last: Vec<Option<FaceBox>>,
     /// The face last placed in 3D: gives a lone view's detection its depth.
     known: Option<KnownFace>,
+    /// The last round's detections per camera, before fusion (for diagnostics).
+    last_detections: Vec<Vec<FaceBox>>,
+    /// The last round's fused faces, the boxes the models were adapted with.
+    last_fused: FusedFaces,
 }
 
 impl SkinAdapter {
@@ -63,7 +67,25 @@ impl SkinAdapter {
             },
             last: vec![None; cameras.len()],
             known: None,
+            last_detections: vec![Vec::new(); cameras.len()],
+            last_fused: FusedFaces {
+                boxes: vec![None; cameras.len()],
+                transferred: vec![false; cameras.len()],
+                ..FusedFaces::default()
+            },
         })
+    }
+
+    /// Per camera (rig order), what its own detector found in the last round, before the
+    /// views were checked against each other (empty before the first round).
+    pub fn last_detections(&self) -> &[Vec<FaceBox>] {
+        &self.last_detections
+    }
+
+    /// The faces the last round adapted each camera's model with: a camera's own confirmed
+    /// detection, a face lent by the other views (`transferred`), or none.
+    pub fn last_fused(&self) -> &FusedFaces {
+        &self.last_fused
     }
 
     /// The current models, one per camera in rig order.
@@ -119,6 +141,8 @@ impl SkinAdapter {
                 }
             }
         }
+        self.last_detections = found;
+        self.last_fused = fused;
         self.stats.seconds += started.elapsed().as_secs_f64();
         changed
     }

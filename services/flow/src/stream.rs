@@ -16,6 +16,8 @@ use handflow_protocol::messages::ScenePoint;
 use handflow_protocol::Camera;
 use nalgebra::{Point3, Vector3};
 
+use crate::face_fusion::FusedFaces;
+use crate::faces::FaceBox;
 use crate::skin::SkinModel;
 use crate::skin_adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
 use crate::{Coverage, EngineConfig, FlowError, SceneFlowEngine, Temporal, Variant};
@@ -79,11 +81,88 @@ pub fn stream_engine_config(variant: Variant, particles_per_ray: Option<usize>, 
     }
 }
 
+/// Frames between two reports of the cameras' skin shares when they change little: about
+/// ten seconds at 30 fps (a steady scene needs no more; see [`SKIN_SHARE_REPORT_CHANGE`]).
+pub const SKIN_SHARE_REPORT_EVERY: u64 = 300;
+/// A change of any camera's skin share of at least this much (a share of the image) since
+/// the last report is reported at once: a light switched on, a skin-coloured object
+/// entering the view.
+pub const SKIN_SHARE_REPORT_CHANGE: f32 = 0.05;
+/// The skin shares logged are counted on every this-many-th pixel: the log needs a share
+/// to a percent, not an exact count, and must cost the stream nothing.
+const SKIN_SHARE_LOG_STRIDE: usize = 7;
+/// Face rounds remembered for [`FlowStream::faces_of_last_estimate`]: the estimate is one
+/// frame behind the newest push, and a round can be applied on every frame.
+const FACE_ROUNDS_KEPT: usize = 4;
+
+/// The faces of one detection round, as the skin models were adapted with them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FaceRound {
+    /// Push index (frame sets into the stream, from 0) of the frame set the faces were
+    /// detected on.
+    pub frame: u64,
+    /// Per camera (rig order): what its own detector found, before fusion.
+    pub detections: Vec<Vec<FaceBox>>,
+    /// Per camera: the face its model was adapted with (own or lent by other views).
+    pub fused: FusedFaces,
+}
+
+/// Where a camera's face came from in a detection round.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FaceStatus {
+    /// Its own detector found it and the other views confirmed it (or it was sure enough).
+    Detected,
+    /// Its detector missed it; the face the other views agreed on was projected into it.
+    Lent,
+    /// No face: its model kept its state.
+    None,
+}
+
+impl FaceStatus {
+    /// A word for logs and pictures.
+    pub fn name(self) -> &'static str {
+        match self {
+            FaceStatus::Detected => "detected",
+            FaceStatus::Lent => "lent",
+            FaceStatus::None => "none",
+        }
+    }
+}
+
+impl FaceRound {
+    /// Where camera `camera`'s face came from (`None` for an unknown camera too).
+    pub fn status(&self, camera: usize) -> FaceStatus {
+        match (self.fused.boxes.get(camera), self.fused.transferred.get(camera)) {
+            (Some(Some(_)), Some(true)) => FaceStatus::Lent,
+            (Some(Some(_)), _) => FaceStatus::Detected,
+            _ => FaceStatus::None,
+        }
+    }
+}
+
+/// Share of camera `camera`'s pixels the engine counts as skin (skin ratio above the
+/// configuration's `skin_threshold`) in the frame of the last estimate, counting every
+/// `stride`-th pixel; `None` when the engine has no skin map for it.
+pub fn skin_share(engine: &SceneFlowEngine, camera: usize, stride: usize) -> Option<f32> {
+    let map = engine.skin_map(camera)?;
+    let threshold = engine.config().skin_threshold;
+    let (mut skin, mut seen) = (0usize, 0usize);
+    for &r in map.iter().step_by(stride.max(1)) {
+        seen += 1;
+        skin += usize::from(r > threshold);
+    }
+    Some(skin as f32 / seen.max(1) as f32)
+}
+
+/// Models adapted in one round, with the faces they were adapted with.
+type Adapted = Result<(Vec<SkinModel>, FaceRound), String>;
+
 /// Face detection and skin adaptation on a thread of its own (the detector is not `Send`:
-/// it lives and dies there). Frame sets go in, adapted models come out, one per frame set.
+/// it lives and dies there). Frame sets go in (with their push index), adapted models come
+/// out, one per frame set.
 struct FaceWorker {
-    frames: Option<Sender<Vec<u8>>>,
-    models: Receiver<Result<Vec<SkinModel>, String>>,
+    frames: Option<Sender<(u64, Vec<u8>)>>,
+    models: Receiver<Adapted>,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -104,7 +183,7 @@ fn lower_this_threads_priority() {
 
 impl FaceWorker {
     fn new(cameras: &[Camera]) -> Self {
-        let (frame_tx, frame_rx) = channel::<Vec<u8>>();
+        let (frame_tx, frame_rx) = channel::<(u64, Vec<u8>)>();
         let (model_tx, model_rx) = channel();
         let cameras = cameras.to_vec();
         let thread = std::thread::Builder::new()
@@ -118,10 +197,15 @@ impl FaceWorker {
                         return;
                     }
                 };
-                for frame_set in frame_rx {
+                for (frame, frame_set) in frame_rx {
                     let views = split_views(&cameras, &frame_set);
                     adapter.adapt_now(&views);
-                    if model_tx.send(Ok(adapter.models().to_vec())).is_err() {
+                    let round = FaceRound {
+                        frame,
+                        detections: adapter.last_detections().to_vec(),
+                        fused: adapter.last_fused().clone(),
+                    };
+                    if model_tx.send(Ok((adapter.models().to_vec(), round))).is_err() {
                         return;
                     }
                 }
@@ -130,12 +214,12 @@ impl FaceWorker {
         Self { frames: Some(frame_tx), models: model_rx, thread }
     }
 
-    fn send(&self, frame_set: Vec<u8>) -> Result<(), StreamError> {
-        self.frames.as_ref().and_then(|tx| tx.send(frame_set).ok()).ok_or(StreamError::FaceWorker)
+    fn send(&self, frame: u64, frame_set: Vec<u8>) -> Result<(), StreamError> {
+        self.frames.as_ref().and_then(|tx| tx.send((frame, frame_set)).ok()).ok_or(StreamError::FaceWorker)
     }
 
     /// The next models if they are ready.
-    fn try_recv(&self) -> Result<Option<Vec<SkinModel>>, StreamError> {
+    fn try_recv(&self) -> Result<Option<(Vec<SkinModel>, FaceRound)>, StreamError> {
         match self.models.try_recv() {
             Ok(Ok(models)) => Ok(Some(models)),
             Ok(Err(e)) => Err(StreamError::FaceDetector(e)),
@@ -144,7 +228,7 @@ impl FaceWorker {
         }
     }
 
-    fn recv(&self) -> Result<Vec<SkinModel>, StreamError> {
+    fn recv(&self) -> Result<(Vec<SkinModel>, FaceRound), StreamError> {
         match self.models.recv() {
             Ok(Ok(models)) => Ok(models),
             Ok(Err(e)) => Err(StreamError::FaceDetector(e)),
@@ -223,6 +307,14 @@ pub struct FlowStream<M> {
     waits_by_default: bool,
     /// Frames between face detections.
     detect_every: u64,
+    /// The last face rounds applied, oldest first, each with the push index of the first
+    /// frame whose skin maps its models made.
+    face_rounds: VecDeque<(u64, FaceRound)>,
+    /// Per camera, the face status last logged (`None` before the first round).
+    faces_reported: Option<Vec<FaceStatus>>,
+    /// Estimates handed out in this stream, and the estimate and skin shares last logged.
+    estimates: u64,
+    skin_reported: Option<(u64, Vec<f32>)>,
 }
 
 /// Frames the warm-up looks at last: frame `(WARM_UP_ROUNDS - 1) * DEFAULT_DETECT_EVERY`.
@@ -246,7 +338,18 @@ impl<M> FlowStream<M> {
             wait_for_models: true,
             waits_by_default: true,
             detect_every: DEFAULT_DETECT_EVERY,
+            face_rounds: VecDeque::new(),
+            faces_reported: None,
+            estimates: 0,
+            skin_reported: None,
         }
+    }
+
+    /// The faces of the detection round whose models made the skin maps of the last
+    /// estimate's frame (`None` before the first round was applied).
+    pub fn faces_of_last_estimate(&self) -> Option<&FaceRound> {
+        let frame = self.engine.stats().frame;
+        self.face_rounds.iter().rev().find(|(applied, _)| *applied <= frame).map(|(_, round)| round)
     }
 
     /// Estimates only the newest `frames` of those held for the warm-up (at least 2, what
@@ -330,7 +433,78 @@ impl<M> FlowStream<M> {
         self.pushed = 0;
         self.pending_models.clear();
         self.waiting.clear();
+        self.face_rounds.clear();
+        self.faces_reported = None;
+        self.estimates = 0;
+        self.skin_reported = None;
         Ok(())
+    }
+
+    /// Applies adapted models from the next frame pushed on, remembers their faces and logs
+    /// the cameras whose face status changed.
+    fn apply_models(&mut self, models: &[SkinModel], round: FaceRound) -> Result<(), StreamError> {
+        self.engine.set_skin_models(models)?;
+        let statuses: Vec<FaceStatus> = (0..self.engine.cameras().len()).map(|c| round.status(c)).collect();
+        for (c, (cam, status)) in self.engine.cameras().iter().zip(&statuses).enumerate() {
+            let before = self.faces_reported.as_ref().and_then(|r| r.get(c).copied());
+            if before == Some(*status) {
+                continue;
+            }
+            let own = round.detections.get(c).map_or(0, Vec::len);
+            match status {
+                FaceStatus::Detected => {
+                    tracing::info!("camera `{}`: face found by its own detector (frame set {})", cam.name, round.frame)
+                }
+                FaceStatus::Lent => tracing::info!(
+                    "camera `{}`: face lent by the other views (own detections: {own}; frame set {})",
+                    cam.name,
+                    round.frame
+                ),
+                FaceStatus::None if before.is_none() => tracing::info!(
+                    "camera `{}`: no face (own detections: {own}, none confirmed; frame set {})",
+                    cam.name,
+                    round.frame
+                ),
+                FaceStatus::None => tracing::info!(
+                    "camera `{}`: face lost (own detections: {own}, none confirmed; frame set {}); its skin model \
+                     keeps its state",
+                    cam.name,
+                    round.frame
+                ),
+            }
+        }
+        self.faces_reported = Some(statuses);
+        if self.face_rounds.len() == FACE_ROUNDS_KEPT {
+            self.face_rounds.pop_front();
+        }
+        self.face_rounds.push_back((self.pushed, round));
+        Ok(())
+    }
+
+    /// Logs every camera's skin share at the first estimate, then when one changed by
+    /// [`SKIN_SHARE_REPORT_CHANGE`] or every [`SKIN_SHARE_REPORT_EVERY`] estimates.
+    fn report_skin_shares(&mut self) {
+        let engine = &self.engine;
+        let shares: Vec<f32> =
+            (0..engine.cameras().len()).map(|c| skin_share(engine, c, SKIN_SHARE_LOG_STRIDE).unwrap_or(0.0)).collect();
+        let due = match &self.skin_reported {
+            None => true,
+            Some((at, last)) => {
+                self.estimates >= at + SKIN_SHARE_REPORT_EVERY
+                    || last.iter().zip(&shares).any(|(a, b)| (a - b).abs() >= SKIN_SHARE_REPORT_CHANGE)
+            }
+        };
+        if !due {
+            return;
+        }
+        let listed: Vec<String> = engine
+            .cameras()
+            .iter()
+            .zip(&shares)
+            .map(|(cam, share)| format!("`{}` {:.1} %", cam.name, 100.0 * share))
+            .collect();
+        tracing::info!("skin share of the image at frame set {}: {}", engine.stats().frame, listed.join(", "));
+        self.skin_reported = Some((self.estimates, shares));
     }
 
     /// Runs the warm-up on the held frames, then pushes them.
@@ -345,9 +519,9 @@ impl<M> FlowStream<M> {
         let rounds = if self.warm_up_frames == 0 { 0 } else { WARM_UP_ROUNDS.min(held.len()) };
         for k in 0..rounds {
             let index = (k as u64 * DEFAULT_DETECT_EVERY) as usize % held.len();
-            self.faces.send(held[index].1.clone())?;
-            let models = self.faces.recv()?;
-            self.engine.set_skin_models(&models).map_err(StreamError::from)?;
+            self.faces.send(index as u64, held[index].1.clone())?;
+            let (models, round) = self.faces.recv()?;
+            self.apply_models(&models, round)?;
         }
         let skip = self.backlog_limit.map_or(0, |keep| held.len().saturating_sub(keep));
         for (meta, frame_set) in held.into_iter().skip(skip) {
@@ -364,14 +538,14 @@ impl<M> FlowStream<M> {
     ) -> Result<(), E> {
         let k = self.pushed;
         if k.is_multiple_of(self.detect_every) && (self.wait_for_models || self.pending_models.is_empty()) {
-            self.faces.send(frame_set.to_vec())?;
+            self.faces.send(k, frame_set.to_vec())?;
             self.pending_models.push_back(k + MODEL_LAG);
         }
         if self.pending_models.front().is_some_and(|&due| due <= k) {
             let models = if self.wait_for_models { Some(self.faces.recv()?) } else { self.faces.try_recv()? };
-            if let Some(models) = models {
+            if let Some((models, round)) = models {
                 self.pending_models.pop_front();
-                self.engine.set_skin_models(&models).map_err(StreamError::from)?;
+                self.apply_models(&models, round)?;
             }
         }
         let views = split_views(self.engine.cameras(), frame_set);
@@ -390,6 +564,8 @@ impl<M> FlowStream<M> {
         on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
     ) -> Result<(), E> {
         let frame = self.engine.stats().frame;
+        self.report_skin_shares();
+        self.estimates += 1;
         while let Some((k, meta)) = self.waiting.pop_front() {
             if k == frame {
                 return on_estimate(meta, &self.engine);
@@ -458,5 +634,30 @@ pub fn ray_spread_variance(engine: &SceneFlowEngine) -> f64 {
         spread / spread_weight
     } else {
         0.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_face_rounds_status_says_where_each_cameras_face_came_from() {
+        let face = FaceBox { x: 10.0, y: 10.0, width: 50.0, height: 60.0, score: 7.0 };
+        let round = FaceRound {
+            frame: 20,
+            detections: vec![vec![face], vec![], vec![face]],
+            fused: FusedFaces {
+                boxes: vec![Some(face), Some(face), None],
+                transferred: vec![false, true, false],
+                rejected: 1,
+                known: None,
+            },
+        };
+        assert_eq!(round.status(0), FaceStatus::Detected);
+        assert_eq!(round.status(1), FaceStatus::Lent);
+        assert_eq!(round.status(2), FaceStatus::None, "camera 2's own detection was rejected");
+        assert_eq!(round.status(9), FaceStatus::None, "an unknown camera has no face");
+        assert_eq!(FaceRound::default().status(0), FaceStatus::None);
     }
 }

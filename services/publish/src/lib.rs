@@ -50,6 +50,10 @@ pub struct TrajectoryRecord {
     pub t: f64,
     /// Objects by label (`head`, `left_hand`, `right_hand`).
     pub objects: BTreeMap<String, ObjectSample>,
+    /// Frame sets lost before this one since the stream began (unreadable, or dropped by a
+    /// stage); files written before this field existed read as 0.
+    #[serde(default)]
+    pub dropped_frames: u64,
 }
 
 impl TrackState {
@@ -79,7 +83,7 @@ impl TrajectoryRecord {
                 ((*label).to_owned(), object)
             })
             .collect();
-        Self { frame: sample.frame, t: sample.timestamp_s, objects }
+        Self { frame: sample.frame, t: sample.timestamp_s, objects, dropped_frames: sample.dropped_frames }
     }
 }
 
@@ -192,8 +196,8 @@ mod tests {
             ObjectSample { pos: [0.2, 1.0, 1.8], vel: [0.1, 0.0, 0.0], confidence: 0.5, state: TrackState::Predicted },
         );
         let mut sink = JsonLinesSink::new(Vec::new());
-        sink.write(&TrajectoryRecord { frame: 0, t: 0.0, objects: objects.clone() }).expect("write");
-        sink.write(&TrajectoryRecord { frame: 1, t: 1.0 / 30.0, objects }).expect("write");
+        sink.write(&TrajectoryRecord { frame: 0, t: 0.0, objects: objects.clone(), dropped_frames: 0 }).expect("write");
+        sink.write(&TrajectoryRecord { frame: 1, t: 1.0 / 30.0, objects, dropped_frames: 0 }).expect("write");
         let text = String::from_utf8(sink.into_inner()).expect("utf8");
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines.len(), 2);

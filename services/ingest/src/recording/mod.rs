@@ -42,6 +42,7 @@ use rayon::prelude::*;
 
 use crate::{camera_match, decode_rgb8_into, IngestError};
 
+pub mod image_folders;
 mod images;
 mod timing;
 pub mod video;

@@ -471,7 +471,7 @@ impl VideoReader {
                     &yuv::Planes { planes, chroma_shift: (sx, sy) },
                     w,
                     h,
-                    yuv::Conversion::new(matrix, full_range),
+                    &yuv::Conversion::new(matrix, full_range),
                     dst,
                 )
                 .map_err(|p| self.frame_error(format!("frame {index}: {p}")))

@@ -14,15 +14,15 @@ pub enum ColourMatrix {
     Bt2020,
 }
 
-/// Fixed-point (16 fractional bits) coefficients of one YCbCr -> RGB conversion.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// One YCbCr -> RGB conversion as lookup tables of fixed-point (16 fractional bits) terms:
+/// per pixel three additions, three shifts and three clamps.
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Conversion {
-    y_offset: i32,
-    y_gain: i32,
-    r_from_v: i32,
-    g_from_u: i32,
-    g_from_v: i32,
-    b_from_u: i32,
+    /// Luma's contribution (offset and gain, plus the rounding half).
+    y: [i32; 256],
+    r_from_v: [i32; 256],
+    g_from_uv: [[i32; 256]; 2],
+    b_from_u: [i32; 256],
 }
 
 const ONE: f64 = 65536.0;
@@ -39,22 +39,46 @@ impl Conversion {
         let kg = 1.0 - kr - kb;
         let (y_offset, y_gain, c_gain) = if full_range { (0, 1.0, 1.0) } else { (16, 255.0 / 219.0, 255.0 / 224.0) };
         let fixed = |x: f64| (x * ONE).round() as i32;
+        let (y_gain, rv, gu, gv, bu) = (
+            fixed(y_gain),
+            fixed(2.0 * (1.0 - kr) * c_gain),
+            fixed(-2.0 * kb * (1.0 - kb) / kg * c_gain),
+            fixed(-2.0 * kr * (1.0 - kr) / kg * c_gain),
+            fixed(2.0 * (1.0 - kb) * c_gain),
+        );
+        let table = |f: &dyn Fn(i32) -> i32| -> [i32; 256] { std::array::from_fn(|i| f(i as i32)) };
         Conversion {
-            y_offset,
-            y_gain: fixed(y_gain),
-            r_from_v: fixed(2.0 * (1.0 - kr) * c_gain),
-            g_from_u: fixed(-2.0 * kb * (1.0 - kb) / kg * c_gain),
-            g_from_v: fixed(-2.0 * kr * (1.0 - kr) / kg * c_gain),
-            b_from_u: fixed(2.0 * (1.0 - kb) * c_gain),
+            y: table(&|y| (y - y_offset) * y_gain + (1 << 15)),
+            r_from_v: table(&|v| rv * (v - 128)),
+            g_from_uv: [table(&|u| gu * (u - 128)), table(&|v| gv * (v - 128))],
+            b_from_u: table(&|u| bu * (u - 128)),
         }
     }
 
+    /// The three chroma terms of one chroma sample.
     #[inline(always)]
-    fn rgb(&self, y: u8, u: u8, v: u8) -> [u8; 3] {
-        let y = (i32::from(y) - self.y_offset) * self.y_gain + (1 << 15);
-        let (u, v) = (i32::from(u) - 128, i32::from(v) - 128);
+    fn chroma(&self, u: u8, v: u8) -> [i32; 3] {
+        [
+            self.r_from_v[usize::from(v)],
+            self.g_from_uv[0][usize::from(u)] + self.g_from_uv[1][usize::from(v)],
+            self.b_from_u[usize::from(u)],
+        ]
+    }
+
+    #[inline(always)]
+    fn pixel(&self, y: u8, chroma: [i32; 3], out: &mut [u8]) {
+        let y = self.y[usize::from(y)];
         let clamp = |x: i32| (x >> 16).clamp(0, 255) as u8;
-        [clamp(y + self.r_from_v * v), clamp(y + self.g_from_u * u + self.g_from_v * v), clamp(y + self.b_from_u * u)]
+        out[0] = clamp(y + chroma[0]);
+        out[1] = clamp(y + chroma[1]);
+        out[2] = clamp(y + chroma[2]);
+    }
+
+    #[cfg(test)]
+    fn rgb(&self, y: u8, u: u8, v: u8) -> [u8; 3] {
+        let mut out = [0u8; 3];
+        self.pixel(y, self.chroma(u, v), &mut out);
+        out
     }
 }
 
@@ -73,7 +97,7 @@ pub fn planar_to_rgb(
     src: &Planes<'_>,
     width: usize,
     height: usize,
-    conversion: Conversion,
+    conversion: &Conversion,
     dst: &mut [u8],
 ) -> Result<(), String> {
     if dst.len() != width * height * 3 {
@@ -92,14 +116,19 @@ pub fn planar_to_rgb(
     {
         return Err("the decoded planes are smaller than the frame".into());
     }
+    // Each chroma sample's terms are computed once for the `1 << sx` pixels it covers.
+    let run = 1usize << sx;
     for (row, out) in dst.chunks_exact_mut(width * 3).enumerate() {
         let y_row = &y_plane[row * y_stride..row * y_stride + width];
         let c = (row >> sy) * u_stride;
         let u_row = &u_plane[c..c + chroma_width];
         let c = (row >> sy) * v_stride;
         let v_row = &v_plane[c..c + chroma_width];
-        for (x, (pixel, &y)) in out.chunks_exact_mut(3).zip(y_row).enumerate() {
-            pixel.copy_from_slice(&conversion.rgb(y, u_row[x >> sx], v_row[x >> sx]));
+        for (((pixels, ys), &u), &v) in out.chunks_mut(3 * run).zip(y_row.chunks(run)).zip(u_row).zip(v_row) {
+            let chroma = conversion.chroma(u, v);
+            for (pixel, &y) in pixels.chunks_exact_mut(3).zip(ys) {
+                conversion.pixel(y, chroma, pixel);
+            }
         }
     }
     Ok(())
@@ -145,11 +174,11 @@ mod tests {
         let v = [128, 240];
         let planes = Planes { planes: [(&y, 4), (&u, 2), (&v, 2)], chroma_shift: (1, 1) };
         let mut dst = vec![0u8; 3 * 2 * 3];
-        planar_to_rgb(&planes, 3, 2, Conversion::new(ColourMatrix::Bt601, false), &mut dst).unwrap();
+        planar_to_rgb(&planes, 3, 2, &Conversion::new(ColourMatrix::Bt601, false), &mut dst).unwrap();
         assert_eq!(&dst[..6], &[0, 0, 0, 255, 255, 255], "first two pixels share neutral chroma");
         assert!(dst[6] > 100 && dst[8] < 60, "the third pixel takes the second (red) chroma sample: {:?}", &dst[6..9]);
         let mut short = vec![0u8; 5];
-        assert!(planar_to_rgb(&planes, 3, 2, Conversion::new(ColourMatrix::Bt601, false), &mut short).is_err());
+        assert!(planar_to_rgb(&planes, 3, 2, &Conversion::new(ColourMatrix::Bt601, false), &mut short).is_err());
     }
 
     #[test]

@@ -1,31 +1,19 @@
 //! Writing a rendered scene as a recording (see [`crate::recording`]) with its truth.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use rayon::prelude::*;
 use serde::Serialize;
 
 use super::render::{ids, ObjectTruth, Renderer};
+use crate::recording::image_folders::write_png;
+pub use crate::recording::image_folders::WriteError;
 use crate::recording::{FRAMES_FILE, RIG_FILE, TRUTH_FILE};
 
 /// Folder of the object-id masks inside a rendered recording: `masks/<camera>/<frame>.png`.
 pub const MASKS_DIR: &str = "masks";
 /// The scene description a recording was rendered from.
 pub const SCENE_FILE: &str = "scene.toml";
-
-/// Why rendering to disk failed.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum WriteError {
-    /// A file or folder could not be written.
-    #[error("writing `{path}`: {error}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// What went wrong.
-        error: String,
-    },
-}
 
 /// `truth.json`: per frame and object, position, velocity, projection and visibility.
 #[derive(Serialize)]
@@ -96,23 +84,6 @@ pub fn write_recording(renderer: &Renderer, out: &Path, frames: u32) -> Result<(
     };
     let json = serde_json::to_string(&file).map_err(|e| io(&out.join(TRUTH_FILE), e.to_string()))?;
     std::fs::write(out.join(TRUTH_FILE), json).map_err(|e| io(&out.join(TRUTH_FILE), e.to_string()))
-}
-
-/// Writes one PNG with fast compression and the Up filter: replaying a recording decodes
-/// every frame, and such files decode 1.8x faster than the encoder's default (measured on
-/// signer-3cam; the same pixels, files 3 % larger: sensor noise leaves little to compress).
-/// Without a filter they decode 5x faster but are as large as the raw frames.
-fn write_png(path: &Path, bytes: &[u8], w: u32, h: u32, colour: image::ExtendedColorType) -> Result<(), WriteError> {
-    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-    use image::ImageEncoder;
-    let io = |error: String| WriteError::Io { path: path.to_path_buf(), error };
-    let file = std::fs::File::create(path).map_err(|e| io(e.to_string()))?;
-    let mut out = std::io::BufWriter::new(file);
-    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Up)
-        .write_image(bytes, w, h, colour)
-        .map_err(|e| io(e.to_string()))?;
-    // Flushed here, so a full disk is an error rather than lost silently on drop.
-    std::io::Write::flush(&mut out).map_err(|e| io(e.to_string()))
 }
 
 #[cfg(test)]
