@@ -75,6 +75,8 @@ fn encode(c: u32, out: &Path, codec_args: &[&str]) {
 }
 
 const LOSSLESS: [&str; 4] = ["-c:v", "ffv1", "-pix_fmt", "bgr0"];
+/// Lossless RGB in an mp4 (x264's RGB mode), as a capture tool could write it.
+const LOSSLESS_MP4: [&str; 6] = ["-c:v", "libx264rgb", "-qp", "0", "-pix_fmt", "rgb24"];
 
 #[test]
 fn lossless_videos_decode_to_the_frames_they_were_encoded_from() {
@@ -261,4 +263,87 @@ fn a_stream_without_colorimetry_decodes_as_ffmpeg_decodes_it() {
     let mean: f64 =
         buf.iter().zip(&reference.stdout).map(|(&a, &b)| f64::from(a.abs_diff(b))).sum::<f64>() / buf.len() as f64;
     assert!(mean < 1.5, "mean difference from ffmpeg's decoding: {mean}");
+}
+
+#[test]
+fn sessions_laid_out_as_pose2sim_and_caliscope_ship_them_open_as_they_are() {
+    if !have_ffmpeg() {
+        return;
+    }
+    // Pose2Sim: videos/cam01.mp4.., calibration/Calib_board.toml with cameras cam_01..,
+    // and the project's Config.toml at the top, which is not a calibration.
+    let session = tempfile::tempdir().unwrap();
+    let root = session.path();
+    std::fs::create_dir_all(root.join("videos")).unwrap();
+    std::fs::create_dir_all(root.join("calibration")).unwrap();
+    std::fs::write(root.join("Config.toml"), "[project]\nframe_rate = 10\n").unwrap();
+    rig(&["cam_01", "cam_02"], W, H).save(root.join("calibration/Calib_board.toml")).unwrap();
+    for c in 0..2 {
+        encode(c, &root.join(format!("videos/cam{:02}.mp4", c + 1)), &LOSSLESS_MP4);
+    }
+    let rec = Recording::open(root).unwrap();
+    assert_eq!(rec.layout(), Layout::Videos);
+    assert!(rec.calibration_paths()[0].ends_with("calibration/Calib_board.toml"));
+    assert_eq!(rec.len(), FRAMES as usize);
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    rec.read_frame_into(1, false, &mut buf).unwrap();
+    assert!(rec.views(&buf)[1] == pixels(1, 1).as_raw().as_slice(), "cam02.mp4 is camera cam_02");
+
+    // caliscope: recordings/recording_1/ below the session's camera_array.toml, with the
+    // older frame_time_history.csv (cameras as `port`, no sync_index).
+    let session = tempfile::tempdir().unwrap();
+    let recording = session.path().join("recordings/recording_1");
+    std::fs::create_dir_all(&recording).unwrap();
+    let calibration = rig(&["cam_0", "cam_1"], W, H).to_toml_string();
+    let caliscope: String = calibration.replace("[cam_0]", "[cameras.0]").replace("[cam_1]", "[cameras.1]");
+    std::fs::write(session.path().join("camera_array.toml"), caliscope).unwrap();
+    for c in 0..2 {
+        encode(c, &recording.join(format!("cam_{c}.mp4")), &LOSSLESS_MP4);
+    }
+    let mut csv = String::from("port,frame_index,frame_time\n");
+    for f in 0..FRAMES {
+        for c in 0..2 {
+            csv.push_str(&format!("{c},{f},{}\n", 5.0 + f64::from(f) * 0.1 + f64::from(c) * 0.01));
+        }
+    }
+    std::fs::write(recording.join("frame_time_history.csv"), csv).unwrap();
+    let rec = Recording::open(&recording).unwrap_or_else(|e| panic!("{e}"));
+    assert!(rec.calibration_paths()[0].ends_with("camera_array.toml"));
+    assert_eq!(rec.len(), FRAMES as usize);
+    let spread = rec.capture_spread().unwrap();
+    assert!((spread.max_s - 0.01).abs() < 1e-9, "{spread:?}");
+}
+
+#[test]
+fn every_codec_and_container_people_record_in_decodes_to_its_frames() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let cases: [(&str, &[&str]); 6] = [
+        ("h264.mp4", &["-c:v", "libx264", "-crf", "10", "-pix_fmt", "yuv420p"]),
+        ("h265.mkv", &["-c:v", "libx265", "-crf", "10", "-pix_fmt", "yuv420p", "-x265-params", "log-level=error"]),
+        ("vp9.webm", &["-c:v", "libvpx-vp9", "-crf", "10", "-b:v", "0"]),
+        ("mjpeg.avi", &["-c:v", "mjpeg", "-q:v", "2"]),
+        ("mpeg4.mov", &["-c:v", "mpeg4", "-q:v", "2"]),
+        ("ffv1.mkv", &LOSSLESS),
+    ];
+    for (name, args) in cases {
+        let dir = tempfile::tempdir().unwrap();
+        rig(&["cam_0"], W, H).save(dir.path().join("rig.toml")).unwrap();
+        encode(0, &dir.path().join(format!("cam_0.{}", name.rsplit('.').next().unwrap())), args);
+        let rec = Recording::open(dir.path()).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(rec.len(), FRAMES as usize, "{name}");
+        let mut buf = vec![0u8; rec.frame_set_len()];
+        for k in [0, 3, 5, 1] {
+            rec.read_frame_into(u64::from(k), false, &mut buf).unwrap_or_else(|e| panic!("{name}, frame {k}: {e}"));
+            let difference = |f: u32| {
+                buf.iter().zip(pixels(0, f).as_raw()).map(|(&a, &b)| f64::from(a.abs_diff(b))).sum::<f64>()
+                    / buf.len() as f64
+            };
+            let mean = difference(k);
+            assert!(mean < 8.0, "{name}, frame {k}: mean difference {mean} from the frame encoded");
+            let nearest = (0..FRAMES).min_by(|&a, &b| difference(a).total_cmp(&difference(b)));
+            assert_eq!(nearest, Some(k), "{name}: the frame read is frame {k}, not another");
+        }
+    }
 }

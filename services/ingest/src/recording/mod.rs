@@ -25,8 +25,14 @@
 //!   narrower or shorter than its calibration (encoders pad to multiples of 16) is accepted
 //!   with a note and the intrinsics unchanged.
 //!
-//! The calibration is the folder's `rig.toml`, else `camera_array.toml`, else its only
-//! calibration file (see [`handflow_protocol::Rig::find_in_dir`]), unless
+//! Where the tools people use put things is looked for too: Pose2Sim's `videos/` and
+//! `calibration/` folders of a session, caliscope's older `frame_time_history.csv` (cameras
+//! as `port`, sets grouped by capture time when it has no `sync_index`), and a caliscope
+//! `camera_array.toml` up to two folders above a recording (`recordings/<name>/`).
+//!
+//! The calibration is the folder's `rig.toml` or `camera_array.toml`, else its
+//! `calibration/` folder's, else its only calibration file (see
+//! [`handflow_protocol::Rig::find_in_dir`]), else one up to two folders above, unless
 //! [`OpenOptions::calibration`] names one.
 //!
 //! [`Recording::open`] checks everything that can be checked without decoding pixels (the
@@ -48,13 +54,20 @@ mod timing;
 pub mod video;
 pub mod yuv;
 
-pub use timing::{read_caliscope_timestamps, read_frame_table, SyncedSet, CALISCOPE_TIMESTAMPS_FILE, FRAMES_FILE};
+pub use timing::{
+    read_caliscope_timestamps, read_frame_table, SyncedSet, CALISCOPE_FRAME_HISTORY_FILE, CALISCOPE_TIMESTAMPS_FILE,
+    FRAMES_FILE,
+};
 use video::{VideoError, VideoProbe, VideoReader};
 
 /// The calibration of the image-folder layout.
 pub const RIG_FILE: &str = "rig.toml";
 /// The optional ground truth.
 pub const TRUTH_FILE: &str = "truth.json";
+/// Where Pose2Sim keeps a session's videos.
+pub const VIDEOS_DIR: &str = "videos";
+/// Where Pose2Sim keeps a session's calibration.
+pub const CALIBRATION_DIR: &str = "calibration";
 /// Video file extensions a recording's folder is searched for (lower case).
 pub const VIDEO_EXTENSIONS: [&str; 5] = ["mp4", "mkv", "avi", "mov", "webm"];
 /// Encoders pad frame sizes to multiples of 16: a video this much smaller than its
@@ -290,11 +303,11 @@ impl Recording {
     /// Opens and checks a recording folder as `options` say.
     pub fn open_with(dir: impl AsRef<Path>, options: &OpenOptions) -> Result<Recording, RecordingError> {
         let dir = dir.as_ref().to_path_buf();
-        let entries = list_dir(&dir)?;
+        let mut entries = list_dir(&dir)?;
         let rig_error = |error| RecordingError::Rig { dir: dir.clone(), error };
         let calibration = match &options.calibration {
             Some(path) => vec![path.clone()],
-            None => Rig::find_in_dir(&dir).map_err(rig_error)?,
+            None => find_calibration(&dir).map_err(rig_error)?,
         };
         let rig = match &calibration[..] {
             [one] => Rig::load(one),
@@ -302,19 +315,16 @@ impl Recording {
         }
         .map_err(rig_error)?;
         let mut notes: Vec<String> = rig.notes.clone();
-        let videos: Vec<PathBuf> = entries
-            .iter()
-            .filter(|p| p.is_file())
-            .filter(|p| {
-                p.extension()
-                    .and_then(|e| e.to_str())
-                    .is_some_and(|e| VIDEO_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
-            })
-            .cloned()
-            .collect();
+        // Pose2Sim keeps a session's videos in `videos/`.
+        let mut video_dir = dir.clone();
+        if !entries.iter().any(|p| is_video(p)) && dir.join(VIDEOS_DIR).is_dir() {
+            video_dir = dir.join(VIDEOS_DIR);
+            entries = list_dir(&video_dir)?;
+        }
+        let videos: Vec<PathBuf> = entries.iter().filter(|p| is_video(p)).cloned().collect();
         let has_camera_folders = rig.cameras.iter().any(|c| dir.join(&c.name).is_dir());
         let mut recording = if !videos.is_empty() && !has_camera_folders {
-            open_videos(&dir, rig, &videos, &mut notes)?
+            open_videos(&dir, &video_dir, rig, &videos, &mut notes)?
         } else {
             let (rig, frames, images) = open_images(&dir, rig)?;
             (rig, frames, Pixels::Images(images))
@@ -614,6 +624,45 @@ impl Recording {
     }
 }
 
+/// Whether `path` is a file with a video extension.
+fn is_video(path: &Path) -> bool {
+    path.is_file()
+        && path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| VIDEO_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+}
+
+/// A recording's calibration, where the tools people use leave it: the folder's `rig.toml`
+/// or `camera_array.toml`; else its `calibration/` folder's (Pose2Sim); else the folder's
+/// only calibration file ([`Rig::find_in_dir`]); else a `rig.toml` or `camera_array.toml`
+/// up to two folders above (caliscope keeps recordings in `recordings/<name>/` below the
+/// session's calibration).
+fn find_calibration(dir: &Path) -> Result<Vec<PathBuf>, RigError> {
+    for name in [RIG_FILE, handflow_protocol::rig::CALISCOPE_FILE] {
+        if dir.join(name).is_file() {
+            return Ok(vec![dir.join(name)]);
+        }
+    }
+    let pose2sim = dir.join(CALIBRATION_DIR);
+    if pose2sim.is_dir() {
+        if let Ok(found) = Rig::find_in_dir(&pose2sim) {
+            return Ok(found);
+        }
+    }
+    let own = Rig::find_in_dir(dir);
+    if own.is_err() {
+        for ancestor in dir.ancestors().skip(1).take(2) {
+            for name in [RIG_FILE, handflow_protocol::rig::CALISCOPE_FILE] {
+                if ancestor.join(name).is_file() {
+                    return Ok(vec![ancestor.join(name)]);
+                }
+            }
+        }
+    }
+    own
+}
+
 /// The folder's entries, sorted.
 fn list_dir(dir: &Path) -> Result<Vec<PathBuf>, RecordingError> {
     let entries = std::fs::read_dir(dir).map_err(|error| RecordingError::Folder { dir: dir.to_owned(), error })?;
@@ -693,6 +742,7 @@ fn open_images(dir: &Path, rig: Rig) -> Result<(Rig, Vec<FrameEntry>, ImageSets)
 /// calibration, and frame sets from the best timing source the folder has.
 fn open_videos(
     dir: &Path,
+    video_dir: &Path,
     mut rig: Rig,
     videos: &[PathBuf],
     notes: &mut Vec<String>,
@@ -746,8 +796,11 @@ fn open_videos(
     }
     let lengths: Vec<usize> = probes.iter().map(|p| p.frame_times.len()).collect();
     let shortest = lengths.iter().copied().min().unwrap_or(0);
-    let (frames, positions) = if dir.join(FRAMES_FILE).is_file() {
-        let table = read_frame_table(&dir.join(FRAMES_FILE))?;
+    // Timing files beside the videos, else in the recording's folder.
+    let timing_file = |name: &str| [video_dir, dir].iter().map(|d| d.join(name)).find(|p| p.is_file());
+    let caliscope = timing_file(CALISCOPE_TIMESTAMPS_FILE).or_else(|| timing_file(CALISCOPE_FRAME_HISTORY_FILE));
+    let (frames, positions) = if let Some(path) = timing_file(FRAMES_FILE) {
+        let table = read_frame_table(&path)?;
         if table.len() > shortest {
             notes.push(format!(
                 "{FRAMES_FILE} lists {} frames, the shortest video holds {shortest}: the rows beyond are left out",
@@ -760,8 +813,7 @@ fn open_videos(
             .map(|&(frame, timestamp)| FrameEntry { frame, timestamp, capture_spread_s: None })
             .collect();
         (frames, (0..rows).map(|r| vec![r; rig.cameras.len()]).collect())
-    } else if dir.join(CALISCOPE_TIMESTAMPS_FILE).is_file() {
-        let path = dir.join(CALISCOPE_TIMESTAMPS_FILE);
+    } else if let Some(path) = caliscope {
         let sets = read_caliscope_timestamps(&path)?;
         synced_frames(&rig, &sets, &lengths, notes).map_err(|problem| RecordingError::Frames {
             path,

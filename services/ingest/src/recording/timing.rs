@@ -9,6 +9,8 @@ use super::RecordingError;
 pub const FRAMES_FILE: &str = "frames.csv";
 /// caliscope's capture times.
 pub const CALISCOPE_TIMESTAMPS_FILE: &str = "timestamps.csv";
+/// The name older caliscope versions give the same table (cameras as `port`).
+pub const CALISCOPE_FRAME_HISTORY_FILE: &str = "frame_time_history.csv";
 
 /// One frame set of a caliscope session: which frame of each camera belongs to it.
 #[derive(Clone, Debug, PartialEq)]
@@ -77,13 +79,15 @@ pub fn read_frame_table(path: &Path) -> Result<Vec<(u64, f64)>, RecordingError> 
 /// time and line number.
 type Row = (u64, Option<u64>, f64, usize);
 
-/// Parses a caliscope `timestamps.csv` (`sync_index, cam_id[, frame_index], frame_time`, in
-/// any column order) into frame sets, in `sync_index` order.
+/// Parses a caliscope `timestamps.csv` or `frame_time_history.csv` (`[sync_index,]
+/// cam_id|port[, frame_index], frame_time`, in any column order) into frame sets, in
+/// `sync_index` order.
 ///
 /// caliscope's `frame_index` counts a camera's captured frames; its video holds them from
 /// the first listed one on, so a frame's position in the video is its `frame_index` minus
-/// the camera's first. Without `frame_index`, a camera's rows in `sync_index` order are its
-/// video's frames in order.
+/// the camera's first. Without `frame_index`, a camera's rows in time order are its video's
+/// frames in order. Without `sync_index`, frames are grouped by capture time as caliscope's
+/// synchroniser does (see `group_by_time`).
 pub fn read_caliscope_timestamps(path: &Path) -> Result<Vec<SyncedSet>, RecordingError> {
     let err = |line: usize, problem: String| RecordingError::Frames { path: path.to_path_buf(), line, problem };
     let text = std::fs::read_to_string(path).map_err(|e| err(0, format!("cannot be read: {e}")))?;
@@ -93,18 +97,20 @@ pub fn read_caliscope_timestamps(path: &Path) -> Result<Vec<SyncedSet>, Recordin
     };
     let columns: Vec<String> = header.split(',').map(|c| c.trim().to_ascii_lowercase()).collect();
     let column = |name: &str| columns.iter().position(|c| c == name);
-    let (Some(sync_col), Some(cam_col), Some(time_col)) =
-        (column("sync_index"), column("cam_id"), column("frame_time"))
-    else {
+    let sync_col = column("sync_index");
+    let (Some(cam_col), Some(time_col)) = (column("cam_id").or_else(|| column("port")), column("frame_time")) else {
         return Err(err(
             1,
             format!(
-                "expected the columns `sync_index`, `cam_id`, `frame_time` (and optionally `frame_index`), found `{}`",
+                "expected the columns `cam_id` (or `port`) and `frame_time` (and optionally `sync_index`, \
+                 `frame_index`), found `{}`",
                 header.trim()
             ),
         ));
     };
     let index_col = column("frame_index");
+    // Without sync_index: every row first, grouped by time below.
+    let mut unsynced: Vec<(u64, Option<u64>, f64, usize)> = Vec::new();
     // (sync_index, cam_id) -> (frame_index or None, time, line)
     let mut rows: BTreeMap<(u64, u64), (Option<u64>, f64, usize)> = BTreeMap::new();
     for (i, line) in lines {
@@ -116,7 +122,6 @@ pub fn read_caliscope_timestamps(path: &Path) -> Result<Vec<SyncedSet>, Recordin
         let integer = |col: usize, name: &str| -> Result<u64, RecordingError> {
             fields[col].parse().map_err(|_| err(n, format!("{name} `{}` is not a non-negative integer", fields[col])))
         };
-        let sync = integer(sync_col, "sync_index")?;
         let cam = integer(cam_col, "cam_id")?;
         let index = index_col.map(|c| integer(c, "frame_index")).transpose()?;
         let time: f64 = fields[time_col]
@@ -124,10 +129,18 @@ pub fn read_caliscope_timestamps(path: &Path) -> Result<Vec<SyncedSet>, Recordin
             .ok()
             .filter(|t: &f64| t.is_finite())
             .ok_or_else(|| err(n, format!("frame_time `{}` is not a finite number", fields[time_col])))?;
+        let Some(sync_col) = sync_col else {
+            unsynced.push((cam, index, time, n));
+            continue;
+        };
+        let sync = integer(sync_col, "sync_index")?;
         if let Some(&(_, _, first)) = rows.get(&(sync, cam)) {
             return Err(err(n, format!("camera {cam} appears twice in sync_index {sync} (first on line {first})")));
         }
         rows.insert((sync, cam), (index, time, n));
+    }
+    if sync_col.is_none() {
+        rows = group_by_time(&unsynced);
     }
     if rows.is_empty() {
         return Err(err(0, "lists no frame".into()));
@@ -169,6 +182,39 @@ pub fn read_caliscope_timestamps(path: &Path) -> Result<Vec<SyncedSet>, Recordin
     Ok(sets.into_values().collect())
 }
 
+/// Sync indices for rows without them: repeatedly, the earliest next frame of any camera
+/// opens a set, and each camera's next frame joins it when captured within half a frame
+/// interval (the median over cameras) of it; a camera whose next frame is later is absent
+/// from that set. The greedy rule caliscope's own synchroniser follows.
+fn group_by_time(rows: &[(u64, Option<u64>, f64, usize)]) -> BTreeMap<(u64, u64), (Option<u64>, f64, usize)> {
+    let mut per_camera: BTreeMap<u64, Vec<(Option<u64>, f64, usize)>> = BTreeMap::new();
+    for &(cam, index, time, line) in rows {
+        per_camera.entry(cam).or_default().push((index, time, line));
+    }
+    let mut intervals: Vec<f64> = Vec::new();
+    for list in per_camera.values_mut() {
+        list.sort_by(|a, b| a.1.total_cmp(&b.1));
+        intervals.extend(list.windows(2).map(|w| w[1].1 - w[0].1).filter(|d| *d > 0.0));
+    }
+    intervals.sort_by(f64::total_cmp);
+    let half = intervals.get(intervals.len() / 2).map_or(f64::INFINITY, |d| d / 2.0);
+    let mut next: BTreeMap<u64, usize> = per_camera.keys().map(|&c| (c, 0)).collect();
+    let mut grouped = BTreeMap::new();
+    for sync in 0u64.. {
+        let heads: Vec<(u64, f64)> =
+            per_camera.iter().filter_map(|(c, list)| list.get(next[c]).map(|r| (*c, r.1))).collect();
+        let Some(first) = heads.iter().map(|h| h.1).min_by(f64::total_cmp) else { break };
+        for (cam, time) in heads {
+            if time < first + half {
+                let k = next[&cam];
+                grouped.insert((sync, cam), per_camera[&cam][k]);
+                next.insert(cam, k + 1);
+            }
+        }
+    }
+    grouped
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -206,6 +252,21 @@ mod tests {
         assert_eq!(sets.len(), 3);
         assert_eq!(sets[2].frames[&0], (1, 1.4), "camera 0's second row is its video's second frame");
         assert_eq!(sets[2].frames[&1], (2, 1.41));
+    }
+
+    #[test]
+    fn rows_without_sync_index_are_grouped_by_capture_time() {
+        // Older caliscope: `port`; camera 1 drops the frame near 1.2 s.
+        let (_d, path) = write(
+            "port,frame_index,frame_time\n0,0,1.00\n1,0,1.02\n0,1,1.20\n0,2,1.40\n1,1,1.41\n0,3,1.60\n1,2,1.58\n",
+        );
+        let sets = read_caliscope_timestamps(&path).expect("parses");
+        assert_eq!(sets.len(), 4);
+        assert_eq!(sets[0].frames[&1], (0, 1.02));
+        assert!(!sets[1].frames.contains_key(&1), "camera 1 has no frame near 1.2 s");
+        assert_eq!(sets[2].frames[&1], (1, 1.41));
+        assert_eq!(sets[3].frames[&0], (3, 1.60));
+        assert_eq!(sets[3].frames[&1], (2, 1.58));
     }
 
     #[test]

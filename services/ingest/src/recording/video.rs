@@ -153,6 +153,16 @@ fn source_into(
     Ok(bin)
 }
 
+/// A buffer time in stream time, the time seeks are expressed in: the segment maps buffer
+/// times to it (an mp4 with B-frames has buffer times shifted by its decoding delay).
+fn stream_time(sample: &gst::Sample, pts: gst::ClockTime) -> gst::ClockTime {
+    sample
+        .segment()
+        .and_then(|segment| segment.downcast_ref::<gst::ClockTime>())
+        .and_then(|segment| segment.to_stream_time(pts))
+        .unwrap_or(pts)
+}
+
 /// Lists a video's frames from its demuxed packets, without decoding: size, codec and the
 /// presentation time of every frame.
 pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
@@ -200,7 +210,7 @@ pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
                     fallback_interval.map(|step| gst::ClockTime::from_nseconds(step.nseconds() * times.len() as u64))
                 });
                 match time {
-                    Some(time) => times.push(time),
+                    Some(time) => times.push(stream_time(&sample, time)),
                     None => {
                         stop(&pipeline);
                         return Err(open_error("its packets carry no timestamps and no frame rate".into()));
@@ -247,7 +257,7 @@ pub struct VideoReader {
     path: PathBuf,
     pipeline: gst::Pipeline,
     sink: gst_app::AppSink,
-    /// Presentation time of every frame, nanoseconds, as the probe found them.
+    /// Presentation time of every frame in stream time, nanoseconds, as the probe found them.
     frame_times: Vec<u64>,
     width: u32,
     height: u32,
@@ -380,6 +390,7 @@ impl VideoReader {
                 return Err(self.frame_error(problem));
             };
             let Some(pts) = sample.buffer().and_then(|b| b.pts()) else { continue };
+            let pts = stream_time(&sample, pts);
             match self.index_of(pts.nseconds()) {
                 Some(index) => return Ok(Some((index, sample))),
                 None => tracing::debug!("video `{}`: a decoded frame at {pts} is not listed", self.path.display()),
