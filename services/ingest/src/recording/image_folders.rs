@@ -90,8 +90,9 @@ pub fn write_image_folders(
         rig.cameras.par_iter().zip(rec.views(&buf)).try_for_each(|(cam, view)| {
             write_png(&out.join(&cam.name).join(&name), view, cam.width, cam.height, image::ExtendedColorType::Rgb8)
         })?;
-        // Nine decimals: nanoseconds, as capture clocks give them.
-        let _ = writeln!(csv, "{},{:.9}", entry.frame, entry.timestamp);
+        // The shortest decimal that reads back as the same number: the imported recording
+        // replays with exactly the times of the original.
+        let _ = writeln!(csv, "{},{}", entry.frame, entry.timestamp);
         report.frame_sets += 1;
         on_frame(index + 1, rec.len());
     }
