@@ -284,6 +284,10 @@ const BAD_CALIBRATIONS: &[(&str, &[&str])] = &[
     ("opencv_rvec_wrong_length.yml", &["field `rvec`", "found 2x1"]),
     ("opencv_unclosed_sequence.yml", &["OpenCV YAML syntax error at line 10", "unclosed `[`"]),
     ("opencv_second_camera_bad_matrix.yml", &["camera `right`", "field `K`", "expected a 3x3 matrix, found 2x3"]),
+    (
+        "opencv_duplicate_name.yml",
+        &["camera `cam_1` (name `front`)", "field `name`", "duplicate camera name `front`", "camera `cam_0`"],
+    ),
     ("opencv_missing_translation.xml", &["camera `opencv_missing_translation` (name `left`), field `T`: missing"]),
     ("opencv_singular_matrix.xml", &["camera `opencv_singular_matrix`, field `camera_matrix`", "singular"]),
     (

@@ -11,7 +11,7 @@
 use toml::Value;
 
 use super::toml_format::{camera_from_table, describe, Context, OrderedRoot};
-use super::{Rig, RigError};
+use super::{CameraList, Rig, RigError};
 
 /// The top-level table holding the cameras.
 const CAMERAS: &str = "cameras";
@@ -42,7 +42,7 @@ pub(super) fn parse(root: OrderedRoot) -> Result<Rig, RigError> {
         _ => a.cmp(b),
     });
     let mut rig = Rig::new(Vec::new());
-    let mut keys: Vec<String> = Vec::new();
+    let mut cameras = CameraList::default();
     for (id, value) in entries {
         let key = format!("{CAMERAS}.{id}");
         let name = format!("cam_{id}");
@@ -62,18 +62,8 @@ pub(super) fn parse(root: OrderedRoot) -> Result<Rig, RigError> {
                 return Err(context.error("ignore", format!("expected a boolean, found {}", describe(other))))
             }
         }
-        let camera = camera_from_table(&key, name.clone(), &table, ROTATION_COUNT)?;
-        if let Some(first) = rig.cameras.iter().position(|c| c.name == camera.name) {
-            return Err(context.error(
-                "name",
-                format!("duplicate camera name `{}`, already used by table `{}`", camera.name, keys[first]),
-            ));
-        }
-        rig.cameras.push(camera);
-        keys.push(key);
+        cameras.push(&key, camera_from_table(&key, name.clone(), &table, ROTATION_COUNT)?)?;
     }
-    if rig.cameras.is_empty() {
-        return Err(RigError::NoCameras);
-    }
+    rig.cameras = cameras.finish()?;
     Ok(rig)
 }

@@ -273,3 +273,39 @@ impl Rig {
         self.cameras.iter().find(|camera| camera.name == name)
     }
 }
+
+/// The cameras of a calibration file as they are read, under their keys in the file: every
+/// format refuses a name used twice and a file without cameras the same way.
+#[derive(Default)]
+pub(crate) struct CameraList {
+    cameras: Vec<Camera>,
+    keys: Vec<String>,
+}
+
+impl CameraList {
+    /// Adds the camera read from the file's entry `key`, unless its name is taken.
+    pub(crate) fn push(&mut self, key: &str, camera: Camera) -> Result<(), RigError> {
+        if let Some(first) = self.cameras.iter().position(|c| c.name == camera.name) {
+            return Err(RigError::Field {
+                problem: format!(
+                    "duplicate camera name `{}`, already used by camera `{}`",
+                    camera.name, self.keys[first]
+                ),
+                camera: key.to_owned(),
+                name: Some(camera.name),
+                field: "name".to_owned(),
+            });
+        }
+        self.cameras.push(camera);
+        self.keys.push(key.to_owned());
+        Ok(())
+    }
+
+    /// The cameras in file order; a file without any is an error.
+    pub(crate) fn finish(self) -> Result<Vec<Camera>, RigError> {
+        if self.cameras.is_empty() {
+            return Err(RigError::NoCameras);
+        }
+        Ok(self.cameras)
+    }
+}

@@ -16,7 +16,7 @@
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
 use super::toml_format::rotation_from_matrix;
-use super::{Camera, Distortion, Rig, RigError};
+use super::{Camera, CameraList, Distortion, Rig, RigError};
 
 /// A FileStorage node.
 #[derive(Clone, Debug, PartialEq)]
@@ -640,25 +640,11 @@ fn rig(root: &Node, stem: &str) -> Result<Rig, RigError> {
     let Node::Map(entries) = root else {
         return Err(RigError::NoCameras);
     };
-    let mut cameras: Vec<Camera> = Vec::new();
-    let mut keys: Vec<&str> = Vec::new();
+    let mut cameras = CameraList::default();
     for (key, node) in entries.iter().filter(|(_, node)| is_camera(node)) {
-        let camera = camera(key, node)?;
-        if let Some(first) = cameras.iter().position(|c| c.name == camera.name) {
-            return Err(RigError::Field {
-                problem: format!("duplicate camera name `{}`, already used by `{}`", camera.name, keys[first]),
-                camera: key.clone(),
-                name: Some(camera.name),
-                field: "name".to_owned(),
-            });
-        }
-        cameras.push(camera);
-        keys.push(key);
+        cameras.push(key, camera(key, node)?)?;
     }
-    if cameras.is_empty() {
-        return Err(RigError::NoCameras);
-    }
-    Ok(Rig::new(cameras))
+    Ok(Rig::new(cameras.finish()?))
 }
 
 /// Parses OpenCV FileStorage YAML; a file of one camera names it `stem` unless it says.

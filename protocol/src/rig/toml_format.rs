@@ -11,7 +11,7 @@ use toml::Value;
 
 use super::camera::rotation_problem;
 use super::up::unit_up;
-use super::{Camera, Distortion, Rig, RigError, RigFormat, UpSource, WorldUp};
+use super::{Camera, CameraList, Distortion, Rig, RigError, RigFormat, UpSource, WorldUp};
 
 /// Tables with this name and no `matrix` hold calibration metadata, not a camera.
 const METADATA_TABLE: &str = "metadata";
@@ -58,8 +58,7 @@ pub(crate) fn parse_detect(text: &str) -> Result<(Rig, RigFormat), RigError> {
 }
 
 fn parse_anipose(root: OrderedRoot) -> Result<Rig, RigError> {
-    let mut cameras: Vec<Camera> = Vec::new();
-    let mut keys: Vec<String> = Vec::new();
+    let mut cameras = CameraList::default();
     let mut declared_up = None;
     for (key, value) in root.0 {
         let Value::Table(table) = value else {
@@ -69,22 +68,9 @@ fn parse_anipose(root: OrderedRoot) -> Result<Rig, RigError> {
             declared_up = parse_metadata_up(&table)?;
             continue;
         }
-        let camera = parse_camera(&key, &table)?;
-        if let Some(first) = cameras.iter().position(|c| c.name == camera.name) {
-            return Err(RigError::Field {
-                problem: format!("duplicate camera name `{}`, already used by camera `{}`", camera.name, keys[first]),
-                camera: key,
-                name: Some(camera.name),
-                field: "name".to_owned(),
-            });
-        }
-        cameras.push(camera);
-        keys.push(key);
+        cameras.push(&key, parse_camera(&key, &table)?)?;
     }
-    if cameras.is_empty() {
-        return Err(RigError::NoCameras);
-    }
-    Ok(Rig { declared_up, ..Rig::new(cameras) })
+    Ok(Rig { declared_up, ..Rig::new(cameras.finish()?) })
 }
 
 /// Keys of the `metadata` table that may state the world's up (ours writes `up`).

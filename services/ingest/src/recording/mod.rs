@@ -436,10 +436,10 @@ impl Recording {
     /// frames or the timestamps do not increase).
     pub fn frame_rate(&self) -> f64 {
         match (self.frames.first(), self.frames.last()) {
+            // Frame sets per second, as the stages see them arrive (sets left out widen the
+            // mean interval, as they do in the stream).
             (Some(a), Some(b)) if self.frames.len() > 1 && b.timestamp > a.timestamp => {
-                // Frame numbers, not set counts: sets left out still took their time.
-                let steps = (b.frame - a.frame).max(1) as f64;
-                steps / (b.timestamp - a.timestamp)
+                (self.frames.len() - 1) as f64 / (b.timestamp - a.timestamp)
             }
             _ => 30.0,
         }
