@@ -149,8 +149,15 @@ fn run(args: Args) -> Result<()> {
     };
     let cameras = &source.rig().cameras;
     let (width, height) = (cameras[0].width, cameras[0].height);
-    if cameras.iter().any(|c| c.width != width || c.height != height) {
-        bail!("every camera of a frame set must have the same size; the rig mixes sizes");
+    if let Some(other) = cameras.iter().find(|c| c.width != width || c.height != height) {
+        bail!(
+            "every camera of a streamed frame set must have the same size, but camera `{}` is {}x{} and `{}` is \
+             {width}x{height} (`handflow track` takes mixed sizes)",
+            other.name,
+            other.width,
+            other.height,
+            cameras[0].name
+        );
     }
     let view_count = cameras.len() as u32;
     let frame_set_len = cameras.iter().map(|c| c.width as usize * c.height as usize * 3).sum::<usize>();
