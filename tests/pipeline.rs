@@ -239,12 +239,66 @@ fn killing_ingest_mid_stream_resumes_where_the_stream_was() {
     eprintln!("ingest killed and resumed; frames lost: {missing:?}");
 }
 
+/// Replaces a rendered recording's `rig.toml` by the same rig as caliscope writes it
+/// (`camera_array.toml`, rotations as 3x3 matrices, cameras `cam_N`), renaming the image
+/// folders to match: the calibration then reaches the stages through a conversion (the rig
+/// message's TOML), as real sessions' do.
+fn as_caliscope_session(rec_dir: &Path) {
+    let rig = Recording::open(rec_dir).unwrap().rig().clone();
+    let mut text = String::new();
+    for (n, camera) in rig.cameras.iter().enumerate() {
+        let r = camera.rotation.matrix();
+        let k = &camera.matrix;
+        let d = camera.distortion.as_array();
+        let t = &camera.translation;
+        text.push_str(&format!(
+            "[cameras.{n}]\nport = {n}\nsize = [{}, {}]\nrotation_count = 0\nerror = 0.3\n\
+             matrix = [[{:?}, {:?}, {:?}], [{:?}, {:?}, {:?}], [{:?}, {:?}, {:?}]]\n\
+             distortions = [{:?}, {:?}, {:?}, {:?}, {:?}]\n\
+             rotation = [[{:?}, {:?}, {:?}], [{:?}, {:?}, {:?}], [{:?}, {:?}, {:?}]]\n\
+             translation = [{:?}, {:?}, {:?}]\n\n",
+            camera.width,
+            camera.height,
+            k[(0, 0)],
+            k[(0, 1)],
+            k[(0, 2)],
+            k[(1, 0)],
+            k[(1, 1)],
+            k[(1, 2)],
+            k[(2, 0)],
+            k[(2, 1)],
+            k[(2, 2)],
+            d[0],
+            d[1],
+            d[2],
+            d[3],
+            d[4],
+            r[(0, 0)],
+            r[(0, 1)],
+            r[(0, 2)],
+            r[(1, 0)],
+            r[(1, 1)],
+            r[(1, 2)],
+            r[(2, 0)],
+            r[(2, 1)],
+            r[(2, 2)],
+            t.x,
+            t.y,
+            t.z,
+        ));
+        std::fs::rename(rec_dir.join(&camera.name), rec_dir.join(format!("cam_{n}"))).unwrap();
+    }
+    std::fs::remove_file(rec_dir.join("rig.toml")).unwrap();
+    std::fs::write(rec_dir.join("camera_array.toml"), text).unwrap();
+}
+
 #[test]
 fn a_truncated_image_in_the_middle_is_skipped_by_track_and_by_run_and_every_other_frame_is_kept() {
     let _one = serial();
     let dir = tempfile::tempdir().unwrap();
     let frames = 30u32;
     let rec_dir = render_preset(dir.path(), "signer-3cam", frames, Some((160, 120)));
+    as_caliscope_session(&rec_dir);
     let rig = Recording::open(&rec_dir).unwrap().rig().clone();
     let broken = rec_dir.join(&rig.cameras[1].name).join("000004.png");
     let bytes = std::fs::read(&broken).unwrap();

@@ -16,6 +16,18 @@ use handflow_protocol::Camera;
 
 use crate::engine_overrides::apply_overrides;
 
+/// The rig the tracker runs on: the recording's, with the user's up if given, exactly as
+/// the streaming stages receive it (through the rig message's TOML, which writes rotations as
+/// Rodrigues vectors), so that `handflow track` and `handflow run` compute on the same numbers
+/// and write the same bytes.
+pub fn tracking_rig(rec: &Recording, up: Option<[f64; 3]>) -> Result<handflow_protocol::Rig> {
+    let mut rig = rec.rig().clone();
+    if let Some(up) = up {
+        rig.set_up(nalgebra::Vector3::from(up))?;
+    }
+    Ok(handflow_protocol::Rig::from_toml_str(&rig.to_toml_string())?)
+}
+
 /// The engine configuration for trajectories on a recording: the stream configuration
 /// ([`stream_engine_config`], where each choice is explained) at the recording's frame
 /// rate, then the overrides (`field=value`).

@@ -80,10 +80,7 @@ impl From<anyhow::Error> for Halt {
 /// table) and writes the pictures of that frame into `out`.
 pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &Path) -> Result<InspectSummary> {
     let rec = Recording::open_with(dir, &options.recording)?;
-    let mut rig = rec.rig().clone();
-    if let Some(up) = options.up {
-        rig.set_up(nalgebra::Vector3::from(up))?;
-    }
+    let rig = crate::recording_engine::tracking_rig(&rec, options.up)?;
     let up = rig.world_up();
     let fps = rec.frame_rate();
     let index = rec.frames().iter().position(|f| f.frame == frame).with_context(|| {

@@ -84,10 +84,7 @@ pub fn track_recording(
     let started = Instant::now();
     let rec = Recording::open_with(dir, &options.recording)?;
     tracing::info!("recording `{}`: {}", dir.display(), rec.summary());
-    let mut rig = rec.rig().clone();
-    if let Some(up) = options.up {
-        rig.set_up(nalgebra::Vector3::from(up))?;
-    }
+    let rig = crate::recording_engine::tracking_rig(&rec, options.up)?;
     let up = rig.world_up();
     tracing::info!("world up {:?} ({})", up.direction.as_slice(), up.source);
     let fps = rec.frame_rate();

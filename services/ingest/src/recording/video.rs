@@ -297,6 +297,12 @@ impl VideoReader {
                 if element.find_property("max-errors").is_some() {
                     element.set_property("max-errors", -1i32);
                 }
+                // One decoding thread per camera: the cameras already decode in parallel
+                // (on the shared session 0.72-0.76x of PNG reading speed, against 0.71x with
+                // libav's default of a thread per core for each camera).
+                if element.find_property("max-threads").is_some() {
+                    element.set_property("max-threads", 1i32);
+                }
             });
         }
         Ok(VideoReader {
