@@ -1,7 +1,8 @@
 //! The rig TOML format: real samples, round trips and every bad-rig error.
 
+mod common;
+
 use std::f64::consts::PI;
-use std::path::Path;
 
 use handflow_protocol::{Camera, Distortion, Rig, RigError};
 use nalgebra::{Matrix3, Rotation3, Vector3};
@@ -276,34 +277,9 @@ const BAD_RIGS: &[(&str, &[&str])] = &[
     ("rig_syntax_error.toml", &["TOML syntax error at line 3"]),
 ];
 
-const BAD_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/bad/");
-
 #[test]
-fn every_bad_rig_fails_with_a_precise_error() {
-    for (file, expected) in BAD_RIGS {
-        let path = Path::new(BAD_DIR).join(file);
-        assert!(path.is_file(), "missing fixture {}", path.display());
-        let error = Rig::load(&path).expect_err(file);
-        assert!(matches!(error, RigError::InFile { .. }), "{file}: {error:?}");
-        let message = error.to_string();
-        assert!(message.contains(file), "{file}: message lacks the path: {message}");
-        for needle in *expected {
-            assert!(message.contains(needle), "{file}: message lacks {needle:?}: {message}");
-        }
-    }
-}
-
-#[test]
-fn every_bad_fixture_is_in_the_table() {
-    let mut files: Vec<String> = std::fs::read_dir(BAD_DIR)
-        .expect("fixture directory")
-        .map(|entry| entry.expect("directory entry").file_name().to_string_lossy().into_owned())
-        .filter(|name| name.starts_with("rig_"))
-        .collect();
-    files.sort();
-    let mut listed: Vec<String> = BAD_RIGS.iter().map(|(file, _)| (*file).to_owned()).collect();
-    listed.sort();
-    assert_eq!(files, listed);
+fn every_bad_rig_fails_with_a_precise_error_and_every_fixture_is_listed() {
+    common::assert_bad_fixtures(BAD_RIGS, &["rig_"]);
 }
 
 proptest! {

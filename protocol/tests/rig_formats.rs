@@ -1,6 +1,8 @@
 //! Calibration formats other than our TOML (caliscope, OpenCV YAML and XML), format
 //! detection, finding a folder's calibration, mount quarter turns and the world's up.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use handflow_protocol::{Camera, Distortion, Rig, RigError, RigFormat, UpSource};
@@ -9,7 +11,6 @@ use proptest::prelude::*;
 
 /// The same three-camera rig written in every format.
 const FORMATS_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/rig_formats/");
-const BAD_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/bad/");
 /// The real caliscope session, outside the repository.
 const CALISCOPE_HANDS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data/real/caliscope-hands/");
 
@@ -301,31 +302,8 @@ const BAD_CALIBRATIONS: &[(&str, &[&str])] = &[
 ];
 
 #[test]
-fn every_bad_calibration_fails_with_a_precise_error() {
-    for (file, expected) in BAD_CALIBRATIONS {
-        let path = Path::new(BAD_DIR).join(file);
-        assert!(path.is_file(), "missing fixture {}", path.display());
-        let error = Rig::load(&path).expect_err(file);
-        assert!(matches!(error, RigError::InFile { .. }), "{file}: {error:?}");
-        let message = error.to_string();
-        assert!(message.contains(file), "{file}: message lacks the path: {message}");
-        for needle in *expected {
-            assert!(message.contains(needle), "{file}: message lacks {needle:?}: {message}");
-        }
-    }
-}
-
-#[test]
-fn every_bad_calibration_fixture_is_in_the_table() {
-    let mut files: Vec<String> = std::fs::read_dir(BAD_DIR)
-        .expect("fixture directory")
-        .map(|entry| entry.expect("directory entry").file_name().to_string_lossy().into_owned())
-        .filter(|name| name.starts_with("caliscope_") || name.starts_with("opencv_"))
-        .collect();
-    files.sort();
-    let mut listed: Vec<String> = BAD_CALIBRATIONS.iter().map(|(file, _)| (*file).to_owned()).collect();
-    listed.sort();
-    assert_eq!(files, listed);
+fn every_bad_calibration_fails_with_a_precise_error_and_every_fixture_is_listed() {
+    common::assert_bad_fixtures(BAD_CALIBRATIONS, &["caliscope_", "opencv_"]);
 }
 
 proptest! {
