@@ -7,5 +7,5 @@ mod scene;
 mod write;
 
 pub use render::{ids, ObjectTruth, Renderer};
-pub use scene::{CameraArc, Keyframe, Motion, SceneSpec, OBJECTS, PRESETS};
+pub use scene::{CameraArc, Keyframe, Motion, SceneSpec, FOREARM_M, OBJECTS, PRESETS};
 pub use write::{write_recording, WriteError, MASKS_DIR, SCENE_FILE};

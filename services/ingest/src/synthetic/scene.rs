@@ -35,8 +35,42 @@ pub struct SceneSpec {
     /// Seed of the background texture and the noise.
     #[serde(default)]
     pub seed: u64,
+    /// Short sleeves: metres of each forearm left bare, skin-coloured like the hands, from
+    /// the wrist towards the elbow (at most [`FOREARM_M`], the whole forearm). 0, the default,
+    /// is long sleeves down to the wrists. The truth of a hand stays its centre.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub bare_forearm_m: f64,
+    /// A cluttered room: a plank floor, a low sideboard and a tall cabinet behind the signer
+    /// in warm wood tones close to (not equal to) skin. They are background (mask 0), never
+    /// tracked.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub clutter: bool,
+    /// Motion blur: the shutter is open for this fraction of the frame interval (0 to 1),
+    /// centred on the frame's time; 0, the default, is an instantaneous exposure.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub motion_blur: f64,
+    /// Sub-frame renders averaged over the open shutter when `motion_blur` > 0: odd (3 to
+    /// 15), so that the middle one is at the frame's time; the masks and truth are that one's.
+    #[serde(default = "default_blur_samples", skip_serializing_if = "is_default_blur_samples")]
+    pub motion_blur_samples: u32,
     /// Motion of head and hands.
     pub motion: Motion,
+}
+
+/// Length of a forearm from the wrist to the elbow, metres (the longest bare forearm).
+pub const FOREARM_M: f64 = 0.25;
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+fn is_false(v: &bool) -> bool {
+    !*v
+}
+fn default_blur_samples() -> u32 {
+    5
+}
+fn is_default_blur_samples(v: &u32) -> bool {
+    *v == default_blur_samples()
 }
 
 fn default_noise() -> f64 {
@@ -74,6 +108,14 @@ pub struct CameraArc {
     /// Per-camera colour cast, RGB multipliers (default [1, 1, 1] each).
     #[serde(default)]
     pub colour_cast: Vec<[f64; 3]>,
+    /// Per camera, clockwise quarter turns (0 to 3) that make its frames upright: the camera
+    /// is mounted rotated about its optical axis (a phone held sideways is 1 or 3), so its
+    /// frames show the scene turned and odd turns swap width and height. Its lens stays
+    /// the same (`fov_deg` spans the sensor's `width`). The rig records the turns
+    /// (`mount_quarter_turns` in `rig.toml`); its calibration is of the raw frames. Default 0
+    /// each.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub mount_quarter_turns: Vec<u8>,
 }
 
 fn default_fov() -> f64 {
@@ -111,7 +153,15 @@ pub struct Keyframe {
 }
 
 /// Names of the built-in scenes.
-pub const PRESETS: [&str; 4] = ["signer-3cam", "signer-2cam-narrow", "hands-cross", "occluded-side"];
+pub const PRESETS: [&str; 7] = [
+    "signer-3cam",
+    "signer-2cam-narrow",
+    "hands-cross",
+    "occluded-side",
+    "signer-short-sleeves",
+    "signer-6fps",
+    "cluttered-room",
+];
 
 impl SceneSpec {
     /// A built-in scene by name.
@@ -124,6 +174,7 @@ impl SceneSpec {
             gain: vec![1.0, 0.85, 1.15][..angles.len().min(3)].to_vec(),
             offset: vec![0.0, 12.0, -8.0][..angles.len().min(3)].to_vec(),
             colour_cast: vec![[1.0, 1.0, 1.0], [1.05, 1.0, 0.92], [0.94, 1.0, 1.06]][..angles.len().min(3)].to_vec(),
+            mount_quarter_turns: Vec::new(),
         };
         let base = |cameras: CameraArc, motion: &str| SceneSpec {
             cameras,
@@ -135,15 +186,28 @@ impl SceneSpec {
             skin_tone: default_skin(),
             clothing: default_clothing(),
             seed: 7,
+            bare_forearm_m: 0.0,
+            clutter: false,
+            motion_blur: 0.0,
+            motion_blur_samples: default_blur_samples(),
             motion: Motion::Preset { name: motion.to_string() },
         };
+        let signer = || base(arc(1.8, &[-35.0, 0.0, 35.0]), "signing");
         match name {
-            "signer-3cam" => Some(base(arc(1.8, &[-35.0, 0.0, 35.0]), "signing")),
+            "signer-3cam" => Some(signer()),
             // About 25 cm between the cameras at 1.8 m: the paper's failure case in depth.
             "signer-2cam-narrow" => Some(base(arc(1.8, &[-4.0, 4.0]), "signing")),
             "hands-cross" => Some(base(arc(1.8, &[-35.0, 0.0, 35.0]), "hands_cross")),
             // The camera far on the signer's left loses the right hand behind the torso.
             "occluded-side" => Some(base(arc(1.8, &[-30.0, 0.0, 70.0]), "hide_right_hand")),
+            // Failure modes of real footage, each otherwise signer-3cam. A T-shirt: skin runs
+            // from each hand a forearm's length up the arm.
+            "signer-short-sleeves" => Some(SceneSpec { bare_forearm_m: FOREARM_M, ..signer() }),
+            // The shared real session's webcams: the same 5 s at 6 frames per second, so hands
+            // move five times as far between frames.
+            "signer-6fps" => Some(SceneSpec { fps: 6.0, frames: 30, ..signer() }),
+            // Wooden furniture near skin in colour behind the signer.
+            "cluttered-room" => Some(SceneSpec { clutter: true, ..signer() }),
             _ => None,
         }
     }
@@ -158,6 +222,7 @@ impl SceneSpec {
             ("gain", self.cameras.gain.len()),
             ("offset", self.cameras.offset.len()),
             ("colour_cast", self.cameras.colour_cast.len()),
+            ("mount_quarter_turns", self.cameras.mount_quarter_turns.len()),
         ] {
             if len != 0 && len != n {
                 return Err(format!("`cameras.{field}` must have one entry per camera ({n}) or none, got {len}"));
@@ -180,6 +245,27 @@ impl SceneSpec {
         }
         if !(self.noise.is_finite() && self.noise >= 0.0) {
             return Err(format!("`noise` must be non-negative, got {}", self.noise));
+        }
+        if let Some(turns) = self.cameras.mount_quarter_turns.iter().find(|&&t| t > 3) {
+            return Err(format!("`cameras.mount_quarter_turns` must be 0 to 3 per camera, got {turns}"));
+        }
+        if !(0.0..=FOREARM_M).contains(&self.bare_forearm_m) {
+            return Err(format!(
+                "`bare_forearm_m` must be between 0 (long sleeves) and {FOREARM_M} m (the whole forearm), got {}",
+                self.bare_forearm_m
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.motion_blur) {
+            return Err(format!(
+                "`motion_blur` (the open shutter's share of the frame interval) must be between 0 and 1, got {}",
+                self.motion_blur
+            ));
+        }
+        if self.motion_blur_samples.is_multiple_of(2) || !(3..=15).contains(&self.motion_blur_samples) {
+            return Err(format!(
+                "`motion_blur_samples` must be odd, 3 to 15 (the middle one is at the frame's time), got {}",
+                self.motion_blur_samples
+            ));
         }
         match &self.motion {
             Motion::Preset { name } if !["signing", "hands_cross", "hide_right_hand"].contains(&name.as_str()) => {
@@ -291,9 +377,83 @@ mod tests {
         for name in PRESETS {
             let spec = SceneSpec::preset(name).expect("preset exists");
             spec.validate().expect("valid");
-            assert!(spec.frames >= 150);
+            // Five seconds each, whatever the frame rate.
+            assert!((f64::from(spec.frames) / spec.fps - 5.0).abs() < 1e-9, "{name}");
         }
         assert!(SceneSpec::preset("nope").is_none());
+    }
+
+    #[test]
+    fn the_failure_mode_presets_are_signer_3cam_with_one_change() {
+        let reference = SceneSpec::preset("signer-3cam").expect("preset");
+        assert_eq!(reference.bare_forearm_m, 0.0, "long sleeves by default");
+        assert!(!reference.clutter);
+        assert_eq!(reference.motion_blur, 0.0);
+        let sleeves = SceneSpec::preset("signer-short-sleeves").expect("preset");
+        assert_eq!(sleeves, SceneSpec { bare_forearm_m: FOREARM_M, ..reference.clone() });
+        let slow = SceneSpec::preset("signer-6fps").expect("preset");
+        assert_eq!(slow.fps, 6.0);
+        assert_eq!(slow.frames, 30);
+        assert_eq!(slow, SceneSpec { fps: 6.0, frames: 30, ..reference.clone() });
+        // The same motion: frame k at 6 fps is frame 5k at 30 fps.
+        assert_eq!(slow.object_states(12.0 / slow.fps), reference.object_states(60.0 / reference.fps));
+        let room = SceneSpec::preset("cluttered-room").expect("preset");
+        assert_eq!(room, SceneSpec { clutter: true, ..reference });
+    }
+
+    #[test]
+    fn scene_files_without_the_new_fields_still_parse_and_defaults_are_not_written() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/scenes");
+        let mut parsed = 0;
+        for entry in std::fs::read_dir(&dir).expect("tests/scenes") {
+            let path = entry.expect("entry").path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                let text = std::fs::read_to_string(&path).expect("read");
+                let spec: SceneSpec = toml::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                spec.validate().unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                assert_eq!((spec.bare_forearm_m, spec.clutter, spec.motion_blur), (0.0, false, 0.0));
+                assert!(spec.cameras.mount_quarter_turns.is_empty());
+                parsed += 1;
+            }
+        }
+        assert!(parsed >= 5, "{parsed} scene files in {}", dir.display());
+        // A scene written without the options reads as before; one with them round-trips.
+        let plain = toml::to_string(&SceneSpec::preset("signer-3cam").expect("preset")).expect("toml");
+        for key in ["bare_forearm_m", "clutter", "motion_blur", "mount_quarter_turns"] {
+            assert!(!plain.contains(key), "`{key}` written at its default:\n{plain}");
+        }
+        let mut spec = SceneSpec::preset("cluttered-room").expect("preset");
+        spec.bare_forearm_m = 0.2;
+        spec.motion_blur = 0.5;
+        spec.motion_blur_samples = 7;
+        spec.cameras.mount_quarter_turns = vec![0, 1, 3];
+        let text = toml::to_string(&spec).expect("toml");
+        assert_eq!(toml::from_str::<SceneSpec>(&text).expect("parses"), spec);
+        let from_file: SceneSpec = toml::from_str(
+            r#"
+                width = 160
+                height = 120
+                fps = 30.0
+                frames = 5
+                clutter = true
+                bare_forearm_m = 0.25
+                motion_blur = 0.5
+
+                [cameras]
+                radius = 1.8
+                angles_deg = [-35.0, 0.0, 35.0]
+                mount_quarter_turns = [0, 1, 0]
+
+                [motion]
+                kind = "preset"
+                name = "signing"
+            "#,
+        )
+        .expect("a hand-written scene with the options parses");
+        from_file.validate().expect("valid");
+        assert_eq!(from_file.motion_blur_samples, 5);
+        assert_eq!(from_file.cameras.mount_quarter_turns, vec![0, 1, 0]);
+        assert!(from_file.clutter && from_file.bare_forearm_m == 0.25);
     }
 
     #[test]
@@ -330,5 +490,17 @@ mod tests {
             right_hand: vec![],
         };
         assert!(spec.validate().unwrap_err().contains("motion.head"));
+        let bad = |edit: &dyn Fn(&mut SceneSpec), field: &str| {
+            let mut spec = SceneSpec::preset("signer-3cam").expect("preset");
+            edit(&mut spec);
+            let message = spec.validate().expect_err(field);
+            assert!(message.contains(field), "{message}");
+        };
+        bad(&|s| s.bare_forearm_m = 0.4, "bare_forearm_m");
+        bad(&|s| s.bare_forearm_m = f64::NAN, "bare_forearm_m");
+        bad(&|s| s.motion_blur = 1.5, "motion_blur");
+        bad(&|s| s.motion_blur_samples = 4, "motion_blur_samples");
+        bad(&|s| s.cameras.mount_quarter_turns = vec![0, 1], "cameras.mount_quarter_turns");
+        bad(&|s| s.cameras.mount_quarter_turns = vec![0, 4, 0], "cameras.mount_quarter_turns");
     }
 }

@@ -46,7 +46,6 @@ pub fn write_recording(renderer: &Renderer, out: &Path, frames: u32) -> Result<(
     std::fs::write(out.join(SCENE_FILE), scene).map_err(|e| io(&out.join(SCENE_FILE), e.to_string()))?;
     let mut csv = String::from("frame,timestamp\n");
     let views = rig.cameras.len();
-    let (w, h) = (renderer.spec().width, renderer.spec().height);
     let mut rgb = vec![0u8; renderer.view_len() * views];
     let mut masks = vec![0u8; renderer.view_len() / 3 * views];
     let mut truth = Vec::with_capacity(frames as usize);
@@ -56,7 +55,9 @@ pub fn write_recording(renderer: &Renderer, out: &Path, frames: u32) -> Result<(
         csv.push_str(&format!("{frame},{t:.6}\n"));
         truth.push(FrameTruth { frame, t, objects: renderer.truth(frame, &masks).into_iter().collect() });
         let name = format!("{frame:06}.png");
+        // Every view has as many pixels; a camera's own width and height say their layout.
         rig.cameras.par_iter().enumerate().try_for_each(|(c, cam)| {
+            let (w, h) = (cam.width, cam.height);
             let view = &rgb[c * renderer.view_len()..(c + 1) * renderer.view_len()];
             let path = out.join(&cam.name).join(&name);
             write_png(&path, view, w, h, image::ExtendedColorType::Rgb8)?;
@@ -77,6 +78,7 @@ pub fn write_recording(renderer: &Renderer, out: &Path, frames: u32) -> Result<(
             ("torso", ids::TORSO),
             ("arms", ids::ARMS),
             ("hair", ids::HAIR),
+            ("forearms", ids::FOREARMS),
         ]
         .into_iter()
         .collect(),
@@ -113,5 +115,28 @@ mod tests {
         assert!(tmp.path().join("masks/cam1/000003.png").is_file());
         let mut buf = vec![0u8; rec.frame_set_len()];
         rec.read_frame_into(3, false, &mut buf).expect("frames decode");
+    }
+
+    #[test]
+    fn a_camera_mounted_sideways_is_written_at_its_own_size_with_its_turns() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let mut spec = SceneSpec::preset("signer-3cam").expect("preset");
+        (spec.width, spec.height) = (96, 72);
+        spec.cameras.mount_quarter_turns = vec![0, 1, 0];
+        let renderer = Renderer::new(&spec).expect("renderer");
+        write_recording(&renderer, tmp.path(), 2).expect("written");
+        let rec = Recording::open(tmp.path()).expect("the output opens as a recording");
+        let cam = &rec.rig().cameras[1];
+        assert_eq!((cam.width, cam.height, cam.mount_quarter_turns), (72, 96, 1));
+        assert_eq!(rec.rig().cameras[0].mount_quarter_turns, 0);
+        let mut buf = vec![0u8; rec.frame_set_len()];
+        rec.read_frame_into(1, false, &mut buf).expect("frames decode at their sizes");
+        let mut rgb = vec![0u8; renderer.view_len() * 3];
+        let mut masks = vec![0u8; renderer.view_len()];
+        renderer.render_into(1, &mut rgb, &mut masks);
+        assert_eq!(buf, rgb, "the PNGs hold the rendered views");
+        let mask = image::open(tmp.path().join("masks/cam1/000001.png")).expect("mask").into_luma8();
+        assert_eq!(mask.dimensions(), (72, 96));
+        assert_eq!(mask.as_raw()[..], masks[96 * 72..2 * 96 * 72]);
     }
 }
