@@ -5,7 +5,10 @@
 #![allow(clippy::unwrap_used)]
 
 use handflow_e2e::render_preset;
-use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FlowStream, StreamError};
+use handflow_flow::stream::{
+    detect_every_for_rate, model_lag_for_rate, scene_point_count, scene_points, stream_engine_config, FaceCue,
+    FlowStream, StreamError,
+};
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_ingest::Recording;
 
@@ -21,7 +24,7 @@ fn estimated_frames(configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>, 
     let mut stream = configure(FlowStream::new(engine));
     let mut buf = vec![0u8; rec.frame_set_len()];
     let mut seen = Vec::new();
-    let mut record = |k: u64, engine: &SceneFlowEngine| {
+    let mut record = |k: u64, engine: &SceneFlowEngine, _face: Option<FaceCue>| {
         // The points handed to clustering are the estimate's, with sensible values.
         let points: Vec<_> = scene_points(engine).collect();
         assert_eq!(points.len(), scene_point_count(engine));
@@ -49,6 +52,20 @@ fn a_live_stream_skips_the_stale_part_of_its_warm_up_backlog() {
     // Frames 0..=20 are held for the warm-up; of those only 18, 19 and 20 are pushed, so the
     // first estimate is frame 19's.
     assert_eq!(frames, (19..u64::from(FRAMES)).collect::<Vec<_>>());
+}
+
+#[test]
+fn at_a_low_frame_rate_the_warm_up_holds_the_same_time_not_the_same_frames() {
+    // At 6 fps the warm-up's rounds are 2 frames apart (a third of a second, as 10 frames
+    // at 30 fps): frames 0..=4 are held, and a live stream's first estimate is frame 3's.
+    assert_eq!(detect_every_for_rate(6.0), 2);
+    assert_eq!(model_lag_for_rate(6.0), 1);
+    assert_eq!(detect_every_for_rate(30.0), handflow_flow::skin_adapt::DEFAULT_DETECT_EVERY);
+    assert_eq!(detect_every_for_rate(120.0), handflow_flow::skin_adapt::DEFAULT_DETECT_EVERY);
+    let frames = estimated_frames(|s| s.with_frame_rate(6.0).with_backlog_limit(3).without_waiting_for_models(), 0);
+    assert_eq!(frames, (3..u64::from(FRAMES)).collect::<Vec<_>>());
+    let frames = estimated_frames(|s| s.with_frame_rate(6.0), 0);
+    assert_eq!(frames, (1..u64::from(FRAMES)).collect::<Vec<_>>());
 }
 
 #[test]

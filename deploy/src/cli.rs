@@ -131,13 +131,20 @@ struct TrackerArgs {
     /// Keep cluster centres on the visible surface instead of the objects' middles.
     #[arg(long)]
     no_centre_correction: bool,
+    /// Publish each hand's cluster centre even when its skin runs on to the forearm,
+    /// instead of the hand at the arm's distal end.
+    #[arg(long)]
+    no_hand_localisation: bool,
     #[command(flatten)]
     engine: EngineArgs,
 }
 
 impl TrackerArgs {
     fn options(&self) -> TrackOptions {
-        track_options(&self.engine, &self.part, self.up, !self.no_centre_correction)
+        TrackOptions {
+            hand_localisation: !self.no_hand_localisation,
+            ..track_options(&self.engine, &self.part, self.up, !self.no_centre_correction)
+        }
     }
 }
 
@@ -238,7 +245,8 @@ struct RenderArgs {
     /// Scene description (TOML, the layout of `scene.toml` in a rendered recording).
     #[arg(long, conflicts_with = "preset")]
     scene: Option<PathBuf>,
-    /// Built-in scene: signer-3cam (default), signer-2cam-narrow, hands-cross, occluded-side.
+    /// Built-in scene: signer-3cam (default), signer-2cam-narrow, hands-cross, occluded-side,
+    /// signer-short-sleeves, signer-6fps, cluttered-room.
     #[arg(long)]
     preset: Option<String>,
     /// Output folder (created; must not exist or be empty).
@@ -978,6 +986,7 @@ fn track_options(
         recording: part.options(),
         up,
         centre_correction,
+        hand_localisation: true,
     }
 }
 

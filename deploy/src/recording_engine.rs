@@ -28,6 +28,19 @@ pub fn tracking_rig(rec: &Recording, up: Option<[f64; 3]>) -> Result<handflow_pr
     Ok(handflow_protocol::Rig::from_toml_str(&rig.to_toml_string())?)
 }
 
+/// The flow stream's face for the cluster stage, as the particle header carries it between
+/// the services (`fps` turns its age into seconds).
+pub fn cluster_face_cue(
+    face: Option<handflow_flow::stream::FaceCue>,
+    fps: f64,
+) -> Option<handflow_cluster::stage::FaceCue> {
+    face.map(|f| handflow_cluster::stage::FaceCue {
+        centre: nalgebra::Vector3::from(f.centre),
+        width_m: f.width_m,
+        age_s: f.age_frames as f64 / fps.max(1e-9),
+    })
+}
+
 /// The engine configuration for trajectories on a recording: the stream configuration
 /// ([`stream_engine_config`], where each choice is explained) at the recording's frame
 /// rate, then the overrides (`field=value`).

@@ -19,7 +19,7 @@ use iceoryx2::prelude::ZeroCopySend;
 use thiserror::Error;
 
 /// Version of the wire format; a stage refuses messages of any other version.
-pub const PROTOCOL_VERSION: u32 = 1;
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// `flags` bit: the stream has ended; the message carries no data (an empty payload).
 pub const END_OF_STREAM: u32 = 1;
@@ -245,6 +245,16 @@ pub struct ParticleHeader {
     pub rig_version: u32,
     /// Reference camera (index in the rig) whose rays the particles lie on.
     pub reference_camera: u32,
+    /// 1 when the face fields hold a face the detection rounds placed in 3D, else 0.
+    pub face_known: u32,
+    /// Reserved, 0.
+    pub reserved: u32,
+    /// Centre of that face, world metres.
+    pub face_centre_m: [f64; 3],
+    /// Physical width of the face detector's box, metres.
+    pub face_width_m: f64,
+    /// Frame sets between the one the face was detected on and this estimate's.
+    pub face_age_frames: u64,
 }
 
 impl ParticleHeader {
@@ -273,6 +283,15 @@ impl ParticleHeader {
         }
         if !self.timestamp_s.is_finite() {
             return err("timestamp_s", format!("is {}", self.timestamp_s));
+        }
+        if self.face_known > 1 {
+            return err("face_known", format!("is {}, expected 0 or 1", self.face_known));
+        }
+        if self.face_known == 1 && !self.face_centre_m.iter().all(|v| v.is_finite()) {
+            return err("face_centre_m", format!("is {:?}", self.face_centre_m));
+        }
+        if self.face_known == 1 && !(self.face_width_m.is_finite() && self.face_width_m > 0.0) {
+            return err("face_width_m", format!("is {}", self.face_width_m));
         }
         Ok(())
     }
@@ -510,6 +529,14 @@ mod tests {
         assert!(p.validate(4).is_err());
         let nan = ParticleHeader { ray_spread_var: f64::NAN, ..p };
         assert!(matches!(nan.validate(5), Err(MessageError::Field { field: "ray_spread_var", .. })));
+        let face = ParticleHeader { face_known: 1, face_centre_m: [0.1, 1.6, 0.0], face_width_m: 0.15, ..p };
+        face.validate(5).unwrap();
+        let bad = ParticleHeader { face_centre_m: [f64::NAN, 0.0, 0.0], ..face };
+        assert!(matches!(bad.validate(5), Err(MessageError::Field { field: "face_centre_m", .. })));
+        let bad = ParticleHeader { face_width_m: 0.0, ..face };
+        assert!(matches!(bad.validate(5), Err(MessageError::Field { field: "face_width_m", .. })));
+        let bad = ParticleHeader { face_known: 7, ..face };
+        assert!(matches!(bad.validate(5), Err(MessageError::Field { field: "face_known", .. })));
     }
 
     #[test]

@@ -22,7 +22,7 @@ use handflow_cluster::em::EmFit;
 use handflow_cluster::stage::{labelled_clusters, ClusterStage, StartStatus};
 use handflow_cluster::tracks::OBJECTS;
 use handflow_flow::stream::{
-    ray_spread_variance, scene_points, skin_share, FaceRound, FaceStatus, FlowStream, StreamError,
+    ray_spread_variance, scene_points, skin_share, FaceCue, FaceRound, FaceStatus, FlowStream, StreamError,
 };
 use handflow_flow::SceneFlowEngine;
 use handflow_ingest::Recording;
@@ -95,18 +95,20 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
     let config = recording_engine_config(options.variant, options.particles_per_ray, fps, &options.overrides)?;
     let reference = rig.most_frontal_camera();
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
-    let mut flow: FlowStream<usize> = FlowStream::new(engine);
-    let mut stage = ClusterStage::new(&rig.cameras[reference], up.direction, options.centre_correction);
+    let mut flow: FlowStream<usize> = FlowStream::new(engine).with_frame_rate(fps);
+    let mut stage = ClusterStage::new(&rig.cameras[reference], up.direction, options.centre_correction)
+        .with_hand_localisation(options.hand_localisation);
     let mut tail: VecDeque<TrajectoryRecord> = VecDeque::with_capacity(TAIL);
     let mut points: Vec<ScenePoint> = Vec::new();
     let mut inspected: Option<Vec<u8>> = None;
     let mut reached = false;
     // The same work per estimate as `track`: points, clustering and labelling, a record.
-    let mut on_estimate = |k: usize, engine: &SceneFlowEngine| -> Result<(), Halt> {
+    let mut on_estimate = |k: usize, engine: &SceneFlowEngine, face: Option<FaceCue>| -> Result<(), Halt> {
         let entry = rec.frames().get(k).with_context(|| format!("estimate for frame set {k} beyond the recording"))?;
         points.clear();
         points.extend(scene_points(engine));
-        let objects = stage.update(entry.timestamp, fps, ray_spread_variance(engine), &points);
+        let face = crate::recording_engine::cluster_face_cue(face, fps);
+        let objects = stage.update(entry.timestamp, fps, ray_spread_variance(engine), &points, face);
         let set = ClusterSet {
             protocol_version: PROTOCOL_VERSION,
             frame: entry.frame,

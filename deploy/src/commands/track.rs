@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use handflow_cluster::stage::{labelled_clusters, ClusterStage};
-use handflow_flow::stream::{ray_spread_variance, scene_points, FlowStream};
+use handflow_flow::stream::{ray_spread_variance, scene_points, FaceCue, FlowStream};
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_ingest::{OpenOptions, Recording};
 use handflow_protocol::messages::{ClusterSet, ScenePoint, PROTOCOL_VERSION};
@@ -34,6 +34,9 @@ pub struct TrackOptions {
     /// Move each cluster's centre from the visible surface to the object's middle (see
     /// [`handflow_cluster::stage::surface_to_centre`]; default true).
     pub centre_correction: bool,
+    /// Publish each hand at the distal end of its arm's skin (see
+    /// [`handflow_cluster::hand::locate_hand`]; default true).
+    pub hand_localisation: bool,
 }
 
 impl Default for TrackOptions {
@@ -45,6 +48,7 @@ impl Default for TrackOptions {
             recording: OpenOptions::default(),
             up: None,
             centre_correction: true,
+            hand_localisation: true,
         }
     }
 }
@@ -93,8 +97,9 @@ pub fn track_recording(
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let frames = rec.len();
     anyhow::ensure!(frames >= 2, "recording `{}` needs at least 2 frames, has {frames}", dir.display());
-    let mut flow = FlowStream::new(engine);
-    let mut stage = ClusterStage::new(&rig.cameras[reference], up.direction, options.centre_correction);
+    let mut flow = FlowStream::new(engine).with_frame_rate(fps);
+    let mut stage = ClusterStage::new(&rig.cameras[reference], up.direction, options.centre_correction)
+        .with_hand_localisation(options.hand_localisation);
     let mut written = 0;
     let mut skipped: u64 = 0;
     // Every frame but the first gets an estimate (the last through the flush), less the
@@ -108,7 +113,8 @@ pub fn track_recording(
         // Per frame set: its buffer, or the error that skipped it (a bad frame).
         let (frame_tx, frame_rx) = std::sync::mpsc::sync_channel::<Result<Vec<u8>, String>>(2);
         let (spare_tx, spare_rx) = std::sync::mpsc::channel::<Vec<u8>>();
-        let (points_tx, points_rx) = std::sync::mpsc::sync_channel::<(Estimate, f64, Vec<ScenePoint>)>(2);
+        let (points_tx, points_rx) =
+            std::sync::mpsc::sync_channel::<(Estimate, f64, Vec<ScenePoint>, Option<FaceCue>)>(2);
         let (spare_points_tx, spare_points_rx) = std::sync::mpsc::channel::<Vec<ScenePoint>>();
         let (record_tx, record_rx) = std::sync::mpsc::channel::<Result<TrajectoryRecord>>();
         let (fatal_tx, fatal_rx) = std::sync::mpsc::channel::<anyhow::Error>();
@@ -131,13 +137,14 @@ pub fn track_recording(
         });
         let stage_ref = &mut stage;
         scope.spawn(move || {
-            for (estimate, spread, points) in points_rx {
+            for (estimate, spread, points, face) in points_rx {
                 let record = rec_ref
                     .frames()
                     .get(estimate.index)
                     .with_context(|| format!("estimate for frame set {} beyond the recording", estimate.index))
                     .map(|entry| {
-                        let objects = stage_ref.update(entry.timestamp, fps, spread, &points);
+                        let face = crate::recording_engine::cluster_face_cue(face, fps);
+                        let objects = stage_ref.update(entry.timestamp, fps, spread, &points, face);
                         let set = ClusterSet {
                             protocol_version: PROTOCOL_VERSION,
                             frame: entry.frame,
@@ -154,11 +161,13 @@ pub fn track_recording(
                 }
             }
         });
-        let mut on_estimate = |estimate: Estimate, engine: &SceneFlowEngine| -> Result<()> {
+        let mut on_estimate = |estimate: Estimate, engine: &SceneFlowEngine, face: Option<FaceCue>| -> Result<()> {
             let mut points = spare_points_rx.try_recv().unwrap_or_default();
             points.clear();
             points.extend(scene_points(engine));
-            points_tx.send((estimate, ray_spread_variance(engine), points)).context("the clustering thread stopped")
+            points_tx
+                .send((estimate, ray_spread_variance(engine), points, face))
+                .context("the clustering thread stopped")
         };
         let mut hand_on = |record: Result<TrajectoryRecord>, skipped: u64| -> Result<()> {
             written += 1;

@@ -8,6 +8,7 @@
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
 pub mod em;
+pub mod hand;
 pub mod stage;
 pub mod tracks;
 

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use handflow_cluster::stage::{labelled_clusters, ClusterStage};
+use handflow_cluster::stage::{labelled_clusters, ClusterStage, FaceCue};
 use handflow_protocol::ipc::{self, Mode, Next, ServiceNames};
 use handflow_protocol::messages::{ClusterSet, END_OF_STREAM, PROTOCOL_VERSION};
 
@@ -81,8 +81,13 @@ fn run(args: Args) -> Result<()> {
             // The next stream is unrelated: start tracking afresh.
             stage = new_stage();
         } else {
-            let objects =
-                stage.update(header.timestamp_s, header.frame_rate_hz, header.ray_spread_var, sample.payload());
+            let objects = stage.update(
+                header.timestamp_s,
+                header.frame_rate_hz,
+                header.ray_spread_var,
+                sample.payload(),
+                FaceCue::from_header(&header),
+            );
             set.objects = labelled_clusters(&objects);
             set.cluster_seconds = stage.last_seconds();
         }

@@ -9,12 +9,20 @@ use handflow_protocol::Camera;
 use nalgebra::{Point3, Vector3};
 
 use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, Component, EmConfig, EmFit};
-use crate::tracks::{Measurement, NotStarted, State, Tracker, TrackerConfig};
+use crate::hand::locate_hand;
+use crate::tracks::{HeadAnchor, Measurement, NotStarted, State, Tracker, TrackerConfig};
 use crate::WeightedPoint;
 
 /// The largest half-thickness the centre correction assumes for a hand, metres: an adult
 /// palm is 2-4 cm thick, a loose fist a little more.
 pub const HAND_HALF_THICKNESS_M: f64 = 0.02;
+/// The farthest the head's centre is put behind its skin's centroid, metres. A skin sphere
+/// (the synthetic head) has its centre 2r/3 behind the visible points' centroid, but a
+/// real head's skin is a face with cheeks, ears and neck around it: on the shared real
+/// session its points' centroid lies 2.5 cm behind the face the detectors triangulate and
+/// 0.5 cm in front of the reference's head point (the ear midpoint), and the sphere model,
+/// reading the neck's vertical spread as a radius, moved it 10 cm too far back.
+pub const HEAD_MAX_CENTRE_SHIFT_M: f64 = 0.045;
 /// Components fitted besides head and hands, seeded at the points farthest from them: skin
 /// the three objects do not explain (the neck, a ghost, a hand seen split in two by another
 /// view's occlusion) gets a component of its own instead of pulling two hands into one.
@@ -22,6 +30,35 @@ pub const CLUTTER_COMPONENTS: usize = 2;
 /// A clutter component is seeded only at a point this far from every other seed, metres
 /// (farther than a hand's own extent).
 pub const CLUTTER_SEED_DISTANCE_M: f64 = 0.12;
+
+/// A face older than this says nothing about where the head is now, seconds: a seated
+/// signer's head moves a few centimetres in that time, a walking person's farther.
+pub const FACE_CUE_MAX_AGE_S: f64 = 2.0;
+/// Distance from the centre of the face (the surface the detectors' boxes mark) to the
+/// centre of the head, metres: about half an adult head's depth (19-20 cm) less the nose.
+pub const FACE_TO_HEAD_CENTRE_M: f64 = 0.08;
+
+/// Where the face detectors last placed the face in 3D, as the flow stage reports it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FaceCue {
+    /// Centre of the face, world metres.
+    pub centre: Vector3<f64>,
+    /// Physical width of the detector's box, metres.
+    pub width_m: f64,
+    /// Seconds between the frame the face was detected on and this one.
+    pub age_s: f64,
+}
+
+impl FaceCue {
+    /// The cue of a particle header (`None` when it carries no face).
+    pub fn from_header(header: &handflow_protocol::messages::ParticleHeader) -> Option<FaceCue> {
+        (header.face_known == 1).then(|| FaceCue {
+            centre: Vector3::from(header.face_centre_m),
+            width_m: header.face_width_m,
+            age_s: header.face_age_frames as f64 / header.frame_rate_hz.max(1e-9),
+        })
+    }
+}
 
 /// One object after a frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -48,6 +85,7 @@ pub struct ClusterStage {
     up: Vector3<f64>,
     signer_left: Vector3<f64>,
     centre_correction: bool,
+    hand_localisation: bool,
     seconds: f64,
     last_seconds: f64,
     frames: u64,
@@ -108,6 +146,7 @@ impl ClusterStage {
             up,
             signer_left,
             centre_correction,
+            hand_localisation: true,
             seconds: 0.0,
             last_seconds: 0.0,
             frames: 0,
@@ -117,10 +156,27 @@ impl ClusterStage {
         }
     }
 
+    /// Whether each hand is published at the distal end of its arm's skin
+    /// ([`locate_hand`]; default true) or at its cluster's centre.
+    pub fn with_hand_localisation(mut self, on: bool) -> Self {
+        self.hand_localisation = on;
+        self
+    }
+
     /// The objects (head, left hand, right hand) after the particle set of the frame at
     /// stream time `t` seconds. `fps` converts the points' velocities from metres per frame
     /// to metres per second; `ray_spread_var` is the filter's own variance along a ray.
-    pub fn update(&mut self, t: f64, fps: f64, ray_spread_var: f64, points: &[ScenePoint]) -> [ObjectEstimate; 3] {
+    /// `face`, when the detectors placed one in 3D within [`FACE_CUE_MAX_AGE_S`], anchors
+    /// the head: its track starts on the cluster at the face and is brought back there when
+    /// it strays (see [`crate::tracks::HeadAnchor`]).
+    pub fn update(
+        &mut self,
+        t: f64,
+        fps: f64,
+        ray_spread_var: f64,
+        points: &[ScenePoint],
+        face: Option<FaceCue>,
+    ) -> [ObjectEstimate; 3] {
         let started = Instant::now();
         self.points.clear();
         self.points.extend(points.iter().map(|p| WeightedPoint {
@@ -128,10 +184,22 @@ impl ClusterStage {
             velocity: Vector3::new(f64::from(p.velocity[0]), f64::from(p.velocity[1]), f64::from(p.velocity[2])) * fps,
             weight: f64::from(p.weight),
         }));
-        let initial = match self.tracker.predictions(t) {
+        let anchor =
+            face.filter(|f| f.age_s <= FACE_CUE_MAX_AGE_S && f.centre.iter().all(|v| v.is_finite())).map(|f| {
+                let sight = (f.centre - self.eye.coords).try_normalize(1e-9).unwrap_or_else(Vector3::zeros);
+                HeadAnchor { face: f.centre, head: f.centre + sight * FACE_TO_HEAD_CENTRE_M }
+            });
+        let mut initial = match self.tracker.predictions(t) {
             Some(p) => Some(p),
             None => extremity_means(&self.points, self.up, self.signer_left),
         };
+        // A head seed far from the face would grow a component on whatever skin-coloured
+        // thing it sits on: seed it on the face.
+        if let (Some(init), Some(a)) = (initial.as_mut(), anchor) {
+            if (init[0].0 - a.face).norm() > self.tracker.config().face_anchor_m {
+                init[0] = (a.face, Vector3::zeros());
+            }
+        }
         let mut fit = initial.and_then(|init| {
             let mut seeds = init.to_vec();
             farthest_point_seeds(&self.points, &mut seeds, CLUTTER_COMPONENTS, CLUTTER_SEED_DISTANCE_M);
@@ -143,16 +211,32 @@ impl ClusterStage {
                 surface_to_centre(c, &self.eye, self.em.min_std, ray_spread_var, HAND_HALF_THICKNESS_M);
             }
         }
-        let mut tracks = self.tracker.update(t, fit.as_ref());
+        let mut tracks = self.tracker.update_anchored(t, fit.as_ref(), anchor);
         // The head's skin is its face, a shallow cap of a nearly round object: its depth spread
         // says little about its size, so its centre comes from the spread across the view.
         if let (Some(fit), Some(raw), true) = (&fit, &raw, self.centre_correction) {
             if let (State::Tracked, Some(m)) = (tracks[0].state, self.tracker.assigned()[0]) {
                 let mut head = raw.components[m.cluster];
-                surface_to_centre(&mut head, &self.eye, self.em.min_std, f64::INFINITY, f64::INFINITY);
+                surface_to_centre(&mut head, &self.eye, self.em.min_std, f64::INFINITY, 1.5 * HEAD_MAX_CENTRE_SHIFT_M);
                 // By the share of the measurement the tracker took.
                 tracks[0].position += (head.position - fit.components[m.cluster].position) * m.pull;
                 self.tracker.set_position(0, tracks[0].position);
+            }
+        }
+        // A hand's cluster in short sleeves holds the forearm too: the hand is its distal end.
+        if let (Some(fit), Some(raw), true) = (&fit, &raw, self.hand_localisation) {
+            for k in 1..3 {
+                let (State::Tracked, Some(m)) = (tracks[k].state, self.tracker.assigned()[k]) else { continue };
+                let Some(found) = locate_hand(&self.points, &raw.components, m.cluster, tracks[0].position, self.up)
+                else {
+                    continue;
+                };
+                if found.arm {
+                    // The centroid's move to the object's middle applies to the hand's part too.
+                    let at = found.position + (fit.components[m.cluster].position - raw.components[m.cluster].position);
+                    tracks[k].position += (at - fit.components[m.cluster].position) * m.pull;
+                    self.tracker.set_position(k, tracks[k].position);
+                }
             }
         }
         let total: f64 = self.points.iter().map(|p| p.weight).sum();
@@ -328,7 +412,7 @@ mod tests {
     #[test]
     fn the_start_status_names_missing_skin_then_runs() {
         let mut stage = ClusterStage::new(&reference(0.0), Vector3::y(), true);
-        stage.update(0.0, 30.0, 0.0, &[]);
+        stage.update(0.0, 30.0, 0.0, &[], None);
         assert_eq!(stage.start_status(), StartStatus::NoSkin);
         assert!(stage.last_fit().is_none());
         let blob = |x: f32, y: f32| {
@@ -341,7 +425,7 @@ mod tests {
         };
         // Head and two hands within reach: the tracks start.
         let all: Vec<ScenePoint> = blob(0.0, 1.6).chain(blob(0.3, 1.1)).chain(blob(-0.3, 1.1)).collect();
-        stage.update(1.0 / 30.0, 30.0, 0.0, &all);
+        stage.update(1.0 / 30.0, 30.0, 0.0, &all, None);
         assert_eq!(stage.start_status(), StartStatus::Running);
         assert_eq!(stage.last_point_count(), 600);
         assert!(stage.last_fit().is_some_and(|f| f.components.len() >= 3));

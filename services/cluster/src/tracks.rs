@@ -94,15 +94,23 @@ pub struct TrackerConfig {
     /// |velocity error| (default 0.1: two hands 10 cm apart moving at 1 m/s in opposite
     /// directions differ as much by motion as by place).
     pub velocity_weight_s: f64,
-    /// A track whose assigned cluster is farther than this from its prediction, metres, is
-    /// re-initialised on that cluster (default 0.2, about two palm widths: farther than a
-    /// hand moves unpredictably in one frame at 30 fps).
+    /// A track whose assigned cluster is farther than its gate from its prediction is
+    /// re-initialised on that cluster. The gate is this distance, metres (default 0.2, about
+    /// two palm widths: what a cluster's centre jitters and a hand moves unpredictably in one
+    /// frame at 30 fps), plus what the constant-velocity model can miss over the frame
+    /// interval, `max_acceleration_m_s2 * dt^2 / 2` (see [`TrackerConfig::gate_m`]).
     pub reinit_distance_m: f64,
+    /// Largest acceleration of a hand the gate allows for, metres per second squared
+    /// (default 20: a hand reversing a 1.5 m/s stroke in 0.15 s). At 30 fps it widens the
+    /// gate by 1 cm, at 6 fps by 28 cm: a hand moves 20-50 cm between frames there, and a
+    /// fixed per-frame gate tuned at 30 fps re-initialised it on every turn.
+    pub max_acceleration_m_s2: f64,
     /// A cluster holding less than this share of the frame's weight is no measurement
     /// (default 0.02).
     pub min_mass_share: f64,
-    /// Frames a track may be predicted before it is lost (default 15, half a second at 30 fps).
-    pub lost_after: u32,
+    /// Seconds a track may be predicted before it is lost (default 0.5; at 30 fps 15 frames,
+    /// at 6 fps 3).
+    pub lost_after_s: f64,
     /// Two tracks whose clusters are closer than this, metres, are merged in this frame (one
     /// hand passing in front of the other): both coast on their predictions instead of
     /// taking the same blob and leaving it with each other's labels (default 0.04).
@@ -120,10 +128,14 @@ pub struct TrackerConfig {
     /// typical mass (default 0.25 and 0.75) the measurement's pull on position and velocity
     /// rises from none (the prediction) to all.
     pub partial_mass_share: (f64, f64),
-    /// Rate at which a track's typical mass follows its measurements (default 0.1 per frame:
-    /// a hand turning edge-on over a third of a second is followed, a one-frame occlusion
-    /// is not).
-    pub typical_mass_rate: f64,
+    /// Time constant with which a track's typical mass follows its measurements, seconds
+    /// (default 0.32, a rate of 0.1 per frame at 30 fps: a hand turning edge-on over a third
+    /// of a second is followed, a one-frame occlusion is not).
+    pub typical_mass_time_s: f64,
+    /// Farthest the head track may be from the face the detectors placed in 3D, metres
+    /// (default 0.25, as far as a head moves between detection rounds): beyond it the
+    /// track is brought back to the face ([`HeadAnchor`]).
+    pub face_anchor_m: f64,
     /// Farthest a hand can be from the head, metres (default 1.0: an adult's arm and
     /// shoulder). Tracks start only on hands within this reach, so skin-like clutter or a
     /// ghost surface behind the signer never becomes a hand.
@@ -135,16 +147,41 @@ impl Default for TrackerConfig {
         Self {
             velocity_weight_s: 0.1,
             reinit_distance_m: 0.2,
+            max_acceleration_m_s2: 20.0,
             min_mass_share: 0.02,
-            lost_after: 15,
+            lost_after_s: 0.5,
             merge_distance_m: 0.04,
             split_distance_m: 0.15,
             velocity_gain: 0.5,
             partial_mass_share: (0.25, 0.75),
-            typical_mass_rate: 0.1,
+            typical_mass_time_s: 0.32,
+            face_anchor_m: 0.25,
             reach_m: 1.0,
         }
     }
+}
+
+impl TrackerConfig {
+    /// The re-initialisation gate for a prediction `dt` seconds ahead, metres.
+    pub fn gate_m(&self, dt: f64) -> f64 {
+        let dt = dt.max(0.0);
+        self.reinit_distance_m + 0.5 * self.max_acceleration_m_s2 * dt * dt
+    }
+}
+
+/// Where the face detectors say the head is. Skin-coloured clutter (a bookshelf, a sunlit
+/// door frame) can hold a cluster that the head track drifts onto once a hand covers the
+/// face; the detectors' face, confirmed by several views, cannot. With an anchor, the head
+/// track starts on the cluster nearest the face, and a head track farther than
+/// [`TrackerConfig::face_anchor_m`] from it is re-initialised on the cluster nearest the
+/// face, or on the face itself when no cluster is near it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HeadAnchor {
+    /// The face's centre (on its surface), world metres: what a head cluster is compared with.
+    pub face: Vector3<f64>,
+    /// The head's centre behind it, world metres: where the track goes when no cluster is
+    /// near the face.
+    pub head: Vector3<f64>,
 }
 
 /// One object's estimate.
@@ -160,6 +197,8 @@ pub struct Track {
     pub state: State,
     /// Frames since the last measurement.
     pub unmeasured: u32,
+    /// Seconds since the last measurement.
+    pub unmeasured_s: f64,
     /// The weight the track's clusters usually hold (a running mean).
     pub typical_mass: f64,
 }
@@ -231,6 +270,11 @@ impl Tracker {
         }
     }
 
+    /// The configuration.
+    pub fn config(&self) -> &TrackerConfig {
+        &self.config
+    }
+
     /// Re-initialisations so far (a track jumping to a cluster far from its prediction).
     pub fn reinitialisations(&self) -> u64 {
         self.reinitialisations
@@ -253,6 +297,11 @@ impl Tracker {
     /// Takes the clusters of the frame at time `t` (or none, when the frame had no usable
     /// point) and returns the three tracks.
     pub fn update(&mut self, t: f64, fit: Option<&EmFit>) -> [Track; 3] {
+        self.update_anchored(t, fit, None)
+    }
+
+    /// [`Tracker::update`] with the head anchored to where the face detectors place it.
+    pub fn update_anchored(&mut self, t: f64, fit: Option<&EmFit>, anchor: Option<HeadAnchor>) -> [Track; 3] {
         let (indices, clusters): (Vec<usize>, Vec<&Component>) = match fit {
             Some(f) => {
                 let total: f64 = f.components.iter().map(|c| c.mass).sum();
@@ -267,8 +316,8 @@ impl Tracker {
         self.assigned = [None; 3];
         self.not_started = None;
         let tracks = match self.predictions(t) {
-            Some(predicted) => self.follow(predicted, &clusters),
-            None => match self.start(&clusters) {
+            Some(predicted) => self.follow(t - self.time, predicted, &clusters, anchor),
+            None => match self.start(&clusters, anchor) {
                 Ok(tracks) => Some(tracks),
                 Err(why) => {
                     self.not_started = Some(why);
@@ -288,6 +337,7 @@ impl Tracker {
                 confidence: 0.0,
                 state: State::Lost,
                 unmeasured: 0,
+                unmeasured_s: 0.0,
                 typical_mass: 0.0,
             }; 3],
         )
@@ -296,10 +346,13 @@ impl Tracker {
     /// First labelling: head is the highest cluster, the hands are the two largest within
     /// reach of it, told apart by the signer's left. Needs three such clusters (until then
     /// no track starts, and the error says which is missing).
-    fn start(&mut self, clusters: &[&Component]) -> Result<[Track; 3], NotStarted> {
-        let head = (0..clusters.len())
+    fn start(&mut self, clusters: &[&Component], anchor: Option<HeadAnchor>) -> Result<[Track; 3], NotStarted> {
+        let highest = (0..clusters.len())
             .max_by(|&a, &b| clusters[a].position.dot(&self.up).total_cmp(&clusters[b].position.dot(&self.up)))
             .ok_or(NotStarted::NoClusters)?;
+        // With a face known, the head is the cluster on it, not whatever is highest (a
+        // raised hand, a lamp).
+        let head = anchor.and_then(|a| self.nearest_within(clusters, a.face)).unwrap_or(highest);
         if clusters.len() < 3 {
             return Err(NotStarted::TooFewClusters { clusters: clusters.len() });
         }
@@ -328,15 +381,23 @@ impl Tracker {
 
     /// Later frames: the assignment of clusters to tracks that best matches the predicted
     /// positions and velocities (all permutations; three tracks make six).
-    fn follow(&mut self, predicted: [(Vector3<f64>, Vector3<f64>); 3], clusters: &[&Component]) -> Option<[Track; 3]> {
+    fn follow(
+        &mut self,
+        dt: f64,
+        predicted: [(Vector3<f64>, Vector3<f64>); 3],
+        clusters: &[&Component],
+        anchor: Option<HeadAnchor>,
+    ) -> Option<[Track; 3]> {
         let previous = self.tracks?;
+        let gate = self.config.gate_m(dt);
         let cost = |track: usize, c: &Component| {
             let (p, v) = predicted[track];
             (c.position - p).norm() + self.config.velocity_weight_s * (c.velocity - v).norm()
         };
-        // A track left without a cluster pays the re-initialisation distance: better
-        // unmeasured than matched to a cluster farther than that.
-        let miss = self.config.reinit_distance_m;
+        // A track left without a cluster pays the gate and the velocity change the largest
+        // acceleration allows over the interval: better unmeasured than matched to a
+        // cluster farther than that in position and motion.
+        let miss = gate + self.config.velocity_weight_s * self.config.max_acceleration_m_s2 * dt.max(0.0);
         let mut best: ([Option<usize>; 3], f64) = ([None; 3], f64::INFINITY);
         let options: Vec<Option<usize>> = (0..clusters.len()).map(Some).chain(std::iter::once(None)).collect();
         for &a in &options {
@@ -352,6 +413,23 @@ impl Tracker {
                         best = (pick, total);
                     }
                 }
+            }
+        }
+        // The head strayed from the face: back onto the cluster at the face, taken from a
+        // hand if need be (a hand in front of the face is one blob with it; the hand coasts),
+        // or onto the face itself.
+        let mut head_to_face = None;
+        if let Some(a) = anchor {
+            let head_now = best.0[0].map_or(predicted[0].0, |i| clusters[i].position);
+            if (head_now - a.face).norm() > self.config.face_anchor_m {
+                let near = self.nearest_within(clusters, a.face);
+                for k in 1..3 {
+                    if near.is_some() && best.0[k] == near {
+                        best.0[k] = None;
+                    }
+                }
+                best.0[0] = near;
+                head_to_face = Some(near.map_or(a.head, |i| clusters[i].position));
             }
         }
         // Merged clusters: two tracks on (nearly) one blob coast through it.
@@ -377,7 +455,7 @@ impl Tracker {
         // its prediction that no other track took: the object reappeared somewhere the
         // constant-velocity model did not expect.
         for (k, track) in previous.iter().enumerate() {
-            if best.0[k].is_some() || track.unmeasured == 0 || merged[k] {
+            if best.0[k].is_some() || track.unmeasured == 0 || merged[k] || (k == 0 && head_to_face.is_some()) {
                 continue;
             }
             // Not a piece of an object another track holds: a cluster that close to another
@@ -396,16 +474,35 @@ impl Tracker {
         let mut out = previous;
         for k in 0..3 {
             let (p, v) = predicted[k];
+            if let (0, Some(at)) = (k, head_to_face) {
+                self.reinitialisations += 1;
+                out[0] = match best.0[0] {
+                    Some(i) => {
+                        self.assigned[0] = Some(Measurement { cluster: i, pull: 1.0 });
+                        measured(clusters[i], 0.5)
+                    }
+                    None => Track {
+                        position: at,
+                        velocity: Vector3::zeros(),
+                        confidence: 0.3,
+                        state: State::Tracked,
+                        unmeasured: 0,
+                        unmeasured_s: 0.0,
+                        typical_mass: previous[0].typical_mass,
+                    },
+                };
+                continue;
+            }
             out[k] = match best.0[k] {
                 Some(i) => {
                     let c = clusters[i];
                     let distance = (c.position - p).norm();
-                    if distance > self.config.reinit_distance_m {
+                    if distance > gate {
                         self.reinitialisations += 1;
                         self.assigned[k] = Some(Measurement { cluster: i, pull: 1.0 });
                         measured(c, 0.5)
                     } else {
-                        let agreement = (-0.5 * (distance / (0.5 * self.config.reinit_distance_m)).powi(2)).exp();
+                        let agreement = (-0.5 * (distance / (0.5 * gate)).powi(2)).exp();
                         let typical = previous[k].typical_mass;
                         let (low, high) = self.config.partial_mass_share;
                         let share = if typical > 0.0 { c.mass / typical } else { 1.0 };
@@ -414,7 +511,7 @@ impl Tracker {
                         let g = self.config.velocity_gain.clamp(0.0, 1.0);
                         track.position = p + (c.position - p) * pull;
                         track.velocity = v + (c.velocity - v) * g * pull;
-                        let rate = self.config.typical_mass_rate.clamp(0.0, 1.0);
+                        let rate = 1.0 - (-dt.max(0.0) / self.config.typical_mass_time_s.max(1e-9)).exp();
                         track.typical_mass = typical + (c.mass - typical) * rate;
                         self.assigned[k] = Some(Measurement { cluster: i, pull });
                         track
@@ -422,13 +519,16 @@ impl Tracker {
                 }
                 None => {
                     let unmeasured = previous[k].unmeasured + 1;
-                    if unmeasured > self.config.lost_after || previous[k].state == State::Lost {
+                    let unmeasured_s = previous[k].unmeasured_s + dt.max(0.0);
+                    // A hair's tolerance: 15 frames at 30 fps are 0.5 s give or take rounding.
+                    if unmeasured_s > self.config.lost_after_s + 1e-6 || previous[k].state == State::Lost {
                         Track {
                             position: previous[k].position,
                             velocity: Vector3::zeros(),
                             confidence: 0.0,
                             state: State::Lost,
                             unmeasured,
+                            unmeasured_s,
                             typical_mass: previous[k].typical_mass,
                         }
                     } else {
@@ -438,6 +538,7 @@ impl Tracker {
                             confidence: previous[k].confidence * 0.8,
                             state: State::Predicted,
                             unmeasured,
+                            unmeasured_s,
                             typical_mass: previous[k].typical_mass,
                         }
                     }
@@ -448,6 +549,17 @@ impl Tracker {
     }
 }
 
+impl Tracker {
+    /// The cluster nearest `at` within [`TrackerConfig::face_anchor_m`].
+    fn nearest_within(&self, clusters: &[&Component], at: Vector3<f64>) -> Option<usize> {
+        (0..clusters.len())
+            .map(|i| (i, (clusters[i].position - at).norm()))
+            .filter(|(_, d)| *d <= self.config.face_anchor_m)
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(i, _)| i)
+    }
+}
+
 fn measured(c: &Component, confidence: f64) -> Track {
     Track {
         position: c.position,
@@ -455,6 +567,7 @@ fn measured(c: &Component, confidence: f64) -> Track {
         confidence: confidence.clamp(0.0, 1.0),
         state: State::Tracked,
         unmeasured: 0,
+        unmeasured_s: 0.0,
         typical_mass: c.mass,
     }
 }
@@ -572,6 +685,44 @@ mod tests {
         assert_eq!(tracks[2].state, State::Tracked);
         assert!((tracks[2].position - back.position).norm() < 1e-12);
         assert_eq!(t.reinitialisations(), 1);
+    }
+
+    #[test]
+    fn gates_and_timeouts_follow_the_frame_rate() {
+        let config = TrackerConfig::default();
+        assert!((config.gate_m(1.0 / 30.0) - config.reinit_distance_m).abs() < 0.02);
+        assert!(config.gate_m(1.0 / 6.0) > 0.45);
+        // A hand moving at 1.5 m/s turns back within one frame interval: 0.3 m from the
+        // constant-velocity prediction. At 6 fps that is a turn the hand makes between two
+        // frames and the track follows it; at 30 fps no hand gets that far off in one frame,
+        // so that cluster is no measurement of it.
+        for (fps, followed) in [(6.0, true), (30.0, false)] {
+            let dt = 1.0 / fps;
+            let mut t = tracker();
+            let head = || cluster(0.0, 1.6, 0.0, 2.0);
+            let left = |x: f64, vx: f64| cluster(x, 1.0, vx, 1.0);
+            let right = || cluster(-0.3, 1.0, 0.0, 1.0);
+            t.update(0.0, Some(&fit(vec![head(), left(0.2, 1.5), right()])));
+            t.update(dt, Some(&fit(vec![head(), left(0.2 + 1.5 * dt, 1.5), right()])));
+            let predicted = 0.2 + 2.0 * 1.5 * dt;
+            t.update(2.0 * dt, Some(&fit(vec![head(), left(predicted - 0.3, -1.5), right()])));
+            assert_eq!(t.assigned()[1].is_some(), followed, "{fps} fps");
+            assert_eq!(t.reinitialisations(), 0, "{fps} fps");
+        }
+        // Lost after half a second, whatever the rate: 4 unmeasured frames at 6 fps, 16 at 30.
+        for (fps, frames) in [(6.0, 4), (30.0, 16)] {
+            let dt = 1.0 / fps;
+            let mut t = tracker();
+            let head = || cluster(0.0, 1.6, 0.0, 2.0);
+            t.update(0.0, Some(&fit(vec![head(), cluster(0.2, 1.0, 0.0, 1.0), cluster(-0.2, 1.0, 0.0, 1.0)])));
+            let mut states = Vec::new();
+            for f in 1..=frames {
+                let tracks = t.update(f as f64 * dt, Some(&fit(vec![head(), cluster(0.2, 1.0, 0.0, 1.0)])));
+                states.push(tracks[2].state);
+            }
+            assert_eq!(states[frames - 2], State::Predicted, "{fps} fps");
+            assert_eq!(states[frames - 1], State::Lost, "{fps} fps");
+        }
     }
 
     #[test]

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FlowStream};
+use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FaceCue, FlowStream};
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_protocol::ipc::{self, Mode, Next, Output, ServiceNames};
 use handflow_protocol::messages::{ParticleHeader, ScenePoint, END_OF_STREAM, PROTOCOL_VERSION};
@@ -26,9 +26,18 @@ struct Args {
     services: String,
 }
 
-/// Frames between face detections in live mode: once a second at 30 frames per second
-/// instead of three times (measured on signer-3cam, 2 cores: see BENCHMARKS.md).
-const LIVE_DETECT_EVERY: u64 = 30;
+/// Seconds between face detections in live mode: once a second instead of three times
+/// (measured on signer-3cam at 30 fps, 2 cores: see BENCHMARKS.md).
+const LIVE_DETECT_INTERVAL_S: f64 = 1.0;
+
+/// Frames between face detections in live mode at `fps`.
+fn live_detect_every(fps: f64) -> u64 {
+    if fps.is_finite() && fps > 0.0 {
+        ((fps * LIVE_DETECT_INTERVAL_S).round() as u64).max(1)
+    } else {
+        1
+    }
+}
 
 /// What the stage remembers of a frame until its estimate is out.
 #[derive(Clone, Copy, Debug)]
@@ -62,13 +71,13 @@ fn run(args: Args) -> Result<()> {
         args.mode
     );
     let mut stream: FlowStream<FrameMeta> = match args.mode {
-        Mode::Replay => FlowStream::new(engine),
+        Mode::Replay => FlowStream::new(engine).with_frame_rate(fps),
         // Live: after the warm-up, go on from the newest frames rather than catch up.
         // and never wait for the face detector.
         Mode::Live => FlowStream::new(engine)
             .with_backlog_limit(3)
             .without_waiting_for_models()
-            .with_detect_every(LIVE_DETECT_EVERY),
+            .with_detect_every(live_detect_every(fps)),
     };
     let mut connected = false;
     let mut last_sequence: Option<u64> = None;
@@ -95,8 +104,8 @@ fn run(args: Args) -> Result<()> {
             particles.connect_downstream(&node, args.mode);
             connected = true;
         }
-        let mut publish = |meta: FrameMeta, engine: &SceneFlowEngine| {
-            send_particles(&particles, &meta, engine, fps, rig_header.rig_version, reference as u32)
+        let mut publish = |meta: FrameMeta, engine: &SceneFlowEngine, face: Option<FaceCue>| {
+            send_particles(&particles, &meta, engine, face, fps, rig_header.rig_version, reference as u32)
         };
         if let Some(last) = last_sequence {
             if header.sequence > last + 1 {
@@ -141,6 +150,7 @@ fn send_particles(
     out: &Output<[ScenePoint], ParticleHeader>,
     meta: &FrameMeta,
     engine: &SceneFlowEngine,
+    face: Option<FaceCue>,
     fps: f64,
     rig_version: u32,
     reference: u32,
@@ -162,6 +172,11 @@ fn send_particles(
         flow_seconds: engine.stats().seconds,
         rig_version,
         reference_camera: reference,
+        face_known: u32::from(face.is_some()),
+        reserved: 0,
+        face_centre_m: face.map_or([0.0; 3], |f| f.centre),
+        face_width_m: face.map_or(0.0, |f| f.width_m),
+        face_age_frames: face.map_or(0, |f| f.age_frames),
     };
     sample.send().context("sending particles")?;
     out.notify()?;

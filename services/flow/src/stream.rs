@@ -6,7 +6,8 @@
 //! same particles in one process or across processes: before the first estimate the models
 //! adapt to frames 0, 10 and 20 ([`WARM_UP_ROUNDS`]; the frames up to there are held), then
 //! faces are detected on every tenth frame and the models adapted to frame `k` are applied
-//! at frame `k + MODEL_LAG`.
+//! at frame `k + MODEL_LAG`. [`FlowStream::with_frame_rate`] keeps those intervals in time
+//! at lower rates (at 6 fps: frames 0, 2 and 4, every second frame, one frame later).
 
 use std::collections::VecDeque;
 use std::sync::mpsc::{channel, Receiver, Sender};
@@ -29,8 +30,36 @@ pub const STREAM_DEPTH_RANGE_M: (f32, f32) = (0.5, 5.0);
 pub const STREAM_SPEED_BOUND_M_S: f32 = 3.0;
 /// Adaptation rounds before the first estimate.
 pub const WARM_UP_ROUNDS: usize = 3;
-/// Frames between detecting faces on a frame and using the models adapted to them.
+/// Frames between detecting faces on a frame and using the models adapted to them, at 30
+/// frames per second and above; at lower rates [`model_lag_for_rate`] keeps the lag near
+/// [`MODEL_LAG_S`].
 pub const MODEL_LAG: u64 = 5;
+/// The time a detection round may take before its models are used, seconds (5 frames at
+/// 30 fps): about what a round of four views costs one core.
+pub const MODEL_LAG_S: f64 = 0.17;
+/// Time between face detections in replay, seconds (10 frames at 30 fps). Faces anchor the
+/// head track as well as the skin models, so the cadence follows time, not frames: at 6 fps
+/// every 10th frame would be 1.7 s apart.
+pub const DETECT_INTERVAL_S: f64 = 1.0 / 3.0;
+
+/// Frames between face detections for a stream at `fps` ([`DETECT_INTERVAL_S`], at least
+/// every frame, at most every [`DEFAULT_DETECT_EVERY`]-th).
+pub fn detect_every_for_rate(fps: f64) -> u64 {
+    frames_for(fps, DETECT_INTERVAL_S).min(DEFAULT_DETECT_EVERY)
+}
+
+/// Frames between detecting faces and using the models for a stream at `fps`.
+pub fn model_lag_for_rate(fps: f64) -> u64 {
+    frames_for(fps, MODEL_LAG_S).min(MODEL_LAG)
+}
+
+fn frames_for(fps: f64, seconds: f64) -> u64 {
+    if fps.is_finite() && fps > 0.0 {
+        ((fps * seconds).round() as u64).max(1)
+    } else {
+        1
+    }
+}
 /// Scene Particles per ray on streams: 6 instead of the engine's 10. Every preset stays on
 /// target with 6, as with 8, and so does every unseen scene that was (some figures a little
 /// lower, the hardest scene's higher); the engine is 1.15 to 1.28x faster than with 8: what
@@ -105,6 +134,18 @@ pub struct FaceRound {
     pub detections: Vec<Vec<FaceBox>>,
     /// Per camera: the face its model was adapted with (own or lent by other views).
     pub fused: FusedFaces,
+}
+
+/// The face the last detection rounds placed in 3D, for the head track: where the head is,
+/// whatever skin-coloured clutter the clusters find.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FaceCue {
+    /// Centre of the face (the detector's box centres, triangulated), world metres.
+    pub centre: [f64; 3],
+    /// Physical width of the detector's box, metres.
+    pub width_m: f64,
+    /// Frame sets between the one the face was detected on and the estimate's.
+    pub age_frames: u64,
 }
 
 /// Where a camera's face came from in a detection round.
@@ -307,6 +348,10 @@ pub struct FlowStream<M> {
     waits_by_default: bool,
     /// Frames between face detections.
     detect_every: u64,
+    /// Frames between a detection and the use of its models.
+    model_lag: u64,
+    /// Frames between the warm-up's detection rounds.
+    warm_up_spacing: u64,
     /// The last face rounds applied, oldest first, each with the push index of the first
     /// frame whose skin maps its models made.
     face_rounds: VecDeque<(u64, FaceRound)>,
@@ -317,8 +362,10 @@ pub struct FlowStream<M> {
     skin_reported: Option<(u64, Vec<f32>)>,
 }
 
-/// Frames the warm-up looks at last: frame `(WARM_UP_ROUNDS - 1) * DEFAULT_DETECT_EVERY`.
-const LAST_WARM_UP_FRAME: u64 = (WARM_UP_ROUNDS as u64 - 1) * DEFAULT_DETECT_EVERY;
+/// Frames the warm-up holds when its rounds are `spacing` frames apart.
+fn warm_up_frames(spacing: u64) -> u64 {
+    (WARM_UP_ROUNDS as u64 - 1) * spacing + 1
+}
 
 impl<M> FlowStream<M> {
     /// A stream through `engine`.
@@ -334,10 +381,12 @@ impl<M> FlowStream<M> {
             pending_models: VecDeque::new(),
             waiting: VecDeque::new(),
             backlog_limit: None,
-            warm_up_frames: LAST_WARM_UP_FRAME + 1,
+            warm_up_frames: warm_up_frames(DEFAULT_DETECT_EVERY),
             wait_for_models: true,
             waits_by_default: true,
             detect_every: DEFAULT_DETECT_EVERY,
+            model_lag: MODEL_LAG,
+            warm_up_spacing: DEFAULT_DETECT_EVERY,
             face_rounds: VecDeque::new(),
             faces_reported: None,
             estimates: 0,
@@ -350,6 +399,31 @@ impl<M> FlowStream<M> {
     pub fn faces_of_last_estimate(&self) -> Option<&FaceRound> {
         let frame = self.engine.stats().frame;
         self.face_rounds.iter().rev().find(|(applied, _)| *applied <= frame).map(|(_, round)| round)
+    }
+
+    /// The newest face placed in 3D by the detection rounds applied up to the last
+    /// estimate's frame (among the last few rounds), with its age in frame sets.
+    pub fn face_cue_of_last_estimate(&self) -> Option<FaceCue> {
+        let frame = self.engine.stats().frame;
+        self.face_rounds.iter().rev().filter(|(applied, _)| *applied <= frame).find_map(|(_, round)| {
+            round.fused.known.map(|known| FaceCue {
+                centre: known.centre,
+                width_m: known.width_m,
+                age_frames: frame.saturating_sub(round.frame),
+            })
+        })
+    }
+
+    /// Times face detection for a stream at `fps` frames per second: every
+    /// [`detect_every_for_rate`] frames, models used [`model_lag_for_rate`] frames later, and
+    /// the warm-up's rounds as far apart (at 30 fps and above, the defaults). Call before
+    /// the first push.
+    pub fn with_frame_rate(mut self, fps: f64) -> Self {
+        self.detect_every = detect_every_for_rate(fps);
+        self.model_lag = model_lag_for_rate(fps);
+        self.warm_up_spacing = self.detect_every;
+        self.warm_up_frames = warm_up_frames(self.warm_up_spacing);
+        self
     }
 
     /// Estimates only the newest `frames` of those held for the warm-up (at least 2, what
@@ -398,7 +472,7 @@ impl<M> FlowStream<M> {
         &mut self,
         meta: M,
         frame_set: &[u8],
-        mut on_estimate: impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+        mut on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         if frame_set.len() != self.frame_set_len {
             return Err(StreamError::FrameSetLength { expected: self.frame_set_len, got: frame_set.len() }.into());
@@ -418,7 +492,7 @@ impl<M> FlowStream<M> {
     /// likelihood) and makes the stream ready for a new, unrelated one.
     pub fn finish<E: From<StreamError>>(
         &mut self,
-        mut on_estimate: impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+        mut on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         if self.held.as_ref().is_some_and(|h| !h.is_empty()) {
             self.release_held(&mut on_estimate)?;
@@ -428,7 +502,7 @@ impl<M> FlowStream<M> {
         }
         self.engine.reset();
         self.held = Some(Vec::new());
-        self.warm_up_frames = LAST_WARM_UP_FRAME + 1;
+        self.warm_up_frames = warm_up_frames(self.warm_up_spacing);
         self.wait_for_models = self.waits_by_default;
         self.pushed = 0;
         self.pending_models.clear();
@@ -510,7 +584,7 @@ impl<M> FlowStream<M> {
     /// Runs the warm-up on the held frames, then pushes them.
     fn release_held<E: From<StreamError>>(
         &mut self,
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+        on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         let held = self.held.take().unwrap_or_default();
         if held.is_empty() {
@@ -518,7 +592,7 @@ impl<M> FlowStream<M> {
         }
         let rounds = if self.warm_up_frames == 0 { 0 } else { WARM_UP_ROUNDS.min(held.len()) };
         for k in 0..rounds {
-            let index = (k as u64 * DEFAULT_DETECT_EVERY) as usize % held.len();
+            let index = (k as u64 * self.warm_up_spacing) as usize % held.len();
             self.faces.send(index as u64, held[index].1.clone())?;
             let (models, round) = self.faces.recv()?;
             self.apply_models(&models, round)?;
@@ -534,12 +608,12 @@ impl<M> FlowStream<M> {
         &mut self,
         meta: M,
         frame_set: &[u8],
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+        on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         let k = self.pushed;
         if k.is_multiple_of(self.detect_every) && (self.wait_for_models || self.pending_models.is_empty()) {
             self.faces.send(k, frame_set.to_vec())?;
-            self.pending_models.push_back(k + MODEL_LAG);
+            self.pending_models.push_back(k + self.model_lag);
         }
         if self.pending_models.front().is_some_and(|&due| due <= k) {
             let models = if self.wait_for_models { Some(self.faces.recv()?) } else { self.faces.try_recv()? };
@@ -561,14 +635,15 @@ impl<M> FlowStream<M> {
     /// never get one (the first frame of a forwards/backwards stream).
     fn hand_out<E: From<StreamError>>(
         &mut self,
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine) -> Result<(), E>,
+        on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         let frame = self.engine.stats().frame;
         self.report_skin_shares();
         self.estimates += 1;
+        let face = self.face_cue_of_last_estimate();
         while let Some((k, meta)) = self.waiting.pop_front() {
             if k == frame {
-                return on_estimate(meta, &self.engine);
+                return on_estimate(meta, &self.engine, face);
             }
         }
         Ok(())

@@ -1,0 +1,218 @@
+//! Where a hand is within its cluster. In short sleeves a hand's skin runs on to the bare
+//! forearm, and the cluster's centroid lands on the wrist or the forearm. The hand is the
+//! distal end of that skin: the end of the arm away from the elbow, a hand's length long.
+
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+
+use crate::em::Component;
+use crate::WeightedPoint;
+
+/// Length of an adult hand from the fingertips to the wrist, metres (16-20 cm); the part of
+/// an arm's skin taken as the hand. Its points' centroid is near the palm centre (the mean
+/// of wrist and knuckles).
+pub const HAND_LENGTH_M: f64 = 0.17;
+/// A cluster whose skin is no longer than this along its main axis is a hand alone, metres:
+/// a hand's length plus the spread depth noise and a bent wrist add.
+pub const HAND_ONLY_EXTENT_M: f64 = 0.22;
+/// Squared Mahalanobis distance (3 degrees of freedom, 99 %) within which a point belongs
+/// to the cluster whose Gaussian explains it best.
+const MEMBER_CHI2: f64 = 11.34;
+/// Share of the members' weight ignored at each end of the main axis (stray depths).
+const END_TRIM: f64 = 0.03;
+
+/// How a cluster's hand was located.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HandLocation {
+    /// The hand's centre, world metres.
+    pub position: Vector3<f64>,
+    /// Length of the cluster's skin along its main axis, metres (between the trimmed ends).
+    pub extent_m: f64,
+    /// Whether the skin was longer than a hand and its distal end was taken.
+    pub arm: bool,
+}
+
+/// Locates the hand in component `cluster` of `components` (the frame's fit), given the
+/// head's position and the world's up. Points belong to the component whose position
+/// Gaussian explains them best, within 99 % of it. When they reach farther than
+/// [`HAND_ONLY_EXTENT_M`] along their main axis, the hand is the centroid of the
+/// [`HAND_LENGTH_M`] at the distal end. The distal end is the one that is higher plus
+/// farther out from the vertical axis through the head: an elbow hangs below the hand and
+/// stays by the body while the hand signs, reaches or rests in the lap in front of it.
+/// `None` when the cluster has no member points.
+pub fn locate_hand(
+    points: &[WeightedPoint],
+    components: &[Component],
+    cluster: usize,
+    head: Vector3<f64>,
+    up: Vector3<f64>,
+) -> Option<HandLocation> {
+    let target = components.get(cluster)?;
+    let gaussians: Vec<Option<(Vector3<f64>, Matrix3<f64>, f64)>> = components
+        .iter()
+        .map(|c| {
+            if c.empty {
+                return None;
+            }
+            let cov: Matrix3<f64> = c.covariance.fixed_view::<3, 3>(0, 0).into_owned();
+            let inverse = cov.try_inverse()?;
+            let log_det = cov.determinant().max(1e-300).ln();
+            Some((c.position, inverse, (c.mixing.max(1e-300)).ln() - 0.5 * log_det))
+        })
+        .collect();
+    let own_gaussian = gaussians[cluster]?;
+    let target_inverse = own_gaussian.1;
+    let members: Vec<&WeightedPoint> = points
+        .iter()
+        .filter(|p| p.is_usable())
+        .filter(|p| {
+            let d = p.position - target.position;
+            if (d.transpose() * target_inverse * d)[(0, 0)] > MEMBER_CHI2 {
+                return false;
+            }
+            let score = |g: &(Vector3<f64>, Matrix3<f64>, f64)| {
+                let d = p.position - g.0;
+                g.2 - 0.5 * (d.transpose() * g.1 * d)[(0, 0)]
+            };
+            let own = score(&own_gaussian);
+            gaussians.iter().enumerate().all(|(j, g)| j == cluster || g.as_ref().is_none_or(|g| score(g) <= own))
+        })
+        .collect();
+    let total: f64 = members.iter().map(|p| p.weight).sum();
+    if members.is_empty() || total <= 0.0 {
+        return None;
+    }
+    let mean = members.iter().fold(Vector3::zeros(), |s, p| s + p.position * p.weight) / total;
+    let scatter = members.iter().fold(Matrix3::zeros(), |s, p| {
+        let d = p.position - mean;
+        s + d * d.transpose() * p.weight
+    }) / total;
+    let eigen = SymmetricEigen::new(scatter);
+    let main = eigen.eigenvalues.imax();
+    let axis: Vector3<f64> = eigen.eigenvectors.column(main).into_owned();
+    let mut along: Vec<(f64, &WeightedPoint)> = members.iter().map(|p| ((p.position - mean).dot(&axis), *p)).collect();
+    along.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let quantile = |share: f64| {
+        let mut acc = 0.0;
+        for (s, p) in &along {
+            acc += p.weight;
+            if acc >= share * total {
+                return *s;
+            }
+        }
+        along.last().map_or(0.0, |(s, _)| *s)
+    };
+    let (low, high) = (quantile(END_TRIM), quantile(1.0 - END_TRIM));
+    let extent_m = high - low;
+    if extent_m <= HAND_ONLY_EXTENT_M {
+        return Some(HandLocation { position: mean, extent_m, arm: false });
+    }
+    let up = up.try_normalize(1e-12).unwrap_or_else(Vector3::y);
+    let distal_score = |s: f64| {
+        let end = mean + axis * s;
+        let rel = end - head;
+        let height = rel.dot(&up);
+        height + (rel - up * height).norm()
+    };
+    let high_is_distal = distal_score(high) >= distal_score(low);
+    let (mut sum, mut weight) = (Vector3::zeros(), 0.0);
+    for (s, p) in &along {
+        let in_hand = if high_is_distal { *s >= high - HAND_LENGTH_M } else { *s <= low + HAND_LENGTH_M };
+        let within = *s >= low && *s <= high;
+        if in_hand && within {
+            sum += p.position * p.weight;
+            weight += p.weight;
+        }
+    }
+    if weight <= 0.0 {
+        return Some(HandLocation { position: mean, extent_m, arm: false });
+    }
+    Some(HandLocation { position: sum / weight, extent_m, arm: true })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::em::{fit_mixture, EmConfig};
+
+    /// Points on the surface of a capsule from `a` to `b` of radius `r`, `n` along and 8
+    /// around, weight 1.
+    fn capsule(a: Vector3<f64>, b: Vector3<f64>, r: f64, n: usize) -> Vec<WeightedPoint> {
+        let axis = (b - a).normalize();
+        let side = axis.cross(&Vector3::z()).try_normalize(1e-9).unwrap_or_else(Vector3::x);
+        let other = axis.cross(&side);
+        let mut out = Vec::new();
+        for i in 0..n {
+            let c = a + (b - a) * (i as f64 / (n - 1) as f64);
+            for k in 0..8 {
+                let angle = k as f64 * std::f64::consts::TAU / 8.0;
+                out.push(WeightedPoint {
+                    position: c + (side * angle.cos() + other * angle.sin()) * r,
+                    velocity: Vector3::zeros(),
+                    weight: 1.0,
+                });
+            }
+        }
+        out
+    }
+
+    fn locate(points: &[WeightedPoint], seed: Vector3<f64>, head: Vector3<f64>) -> HandLocation {
+        let fit =
+            fit_mixture(points, &[(seed, Vector3::zeros())], &EmConfig { outliers: false, ..EmConfig::default() })
+                .expect("fit");
+        locate_hand(points, &fit.components, 0, head, Vector3::y()).expect("members")
+    }
+
+    #[test]
+    fn a_bare_forearm_raised_to_sign_gives_the_hand_not_the_forearm() {
+        // Head at 1.6 m; the elbow by the body at 1.1 m, the forearm rising forwards to a
+        // hand at 1.35 m: skin from the elbow to the fingertips.
+        let head = Vector3::new(0.0, 1.6, 0.0);
+        let elbow = Vector3::new(0.2, 1.1, 0.05);
+        let wrist = Vector3::new(0.22, 1.32, 0.25);
+        let tips = wrist + (wrist - elbow).normalize() * 0.18;
+        let hand_centre = wrist + (tips - wrist) * 0.45;
+        let mut points = capsule(elbow, wrist, 0.03, 30);
+        points.extend(capsule(wrist, tips, 0.04, 20));
+        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        assert!((whole - hand_centre).norm() > 0.1, "the centroid is on the forearm");
+        let found = locate(&points, whole, head);
+        assert!(found.arm);
+        assert!((found.position - hand_centre).norm() < 0.035, "{:?} vs {hand_centre:?}", found.position);
+    }
+
+    #[test]
+    fn a_forearm_resting_forwards_in_the_lap_gives_the_hand_in_front() {
+        let head = Vector3::new(0.0, 1.6, 0.0);
+        let elbow = Vector3::new(0.22, 1.0, 0.0);
+        let wrist = Vector3::new(0.2, 0.98, 0.26);
+        let tips = wrist + (wrist - elbow).normalize() * 0.18;
+        let hand_centre = wrist + (tips - wrist) * 0.45;
+        let mut points = capsule(elbow, wrist, 0.03, 30);
+        points.extend(capsule(wrist, tips, 0.04, 20));
+        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let found = locate(&points, whole, head);
+        assert!((found.position - hand_centre).norm() < 0.035, "{:?} vs {hand_centre:?}", found.position);
+    }
+
+    #[test]
+    fn a_hand_alone_keeps_its_centroid() {
+        let head = Vector3::new(0.0, 1.6, 0.0);
+        let wrist = Vector3::new(0.2, 1.2, 0.2);
+        let tips = Vector3::new(0.2, 1.38, 0.22);
+        let points = capsule(wrist, tips, 0.04, 20);
+        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let found = locate(&points, whole, head);
+        assert!(!found.arm);
+        assert!((found.position - whole).norm() < 0.01);
+    }
+
+    #[test]
+    fn no_members_and_bad_indices_are_none_not_a_panic() {
+        let head = Vector3::new(0.0, 1.6, 0.0);
+        assert!(locate_hand(&[], &[], 0, head, Vector3::y()).is_none());
+        let points = capsule(Vector3::new(0.2, 1.2, 0.2), Vector3::new(0.2, 1.3, 0.2), 0.04, 5);
+        let fit = fit_mixture(&points, &[(Vector3::new(0.2, 1.25, 0.2), Vector3::zeros())], &EmConfig::default())
+            .expect("fit");
+        assert!(locate_hand(&points, &fit.components, 3, head, Vector3::y()).is_none());
+    }
+}
