@@ -688,6 +688,57 @@ mod tests {
     }
 
     #[test]
+    fn tracks_start_in_a_z_up_world_and_a_face_picks_the_head_over_a_raised_hand() {
+        // Z up, the signer's left along -Y (a calibration board's world, as caliscope's).
+        let z_cluster = |x: f64, y: f64, z: f64, mass: f64| Component {
+            position: Vector3::new(x, y, z),
+            ..cluster(0.0, 0.0, 0.0, mass)
+        };
+        let head = z_cluster(0.0, 0.0, 1.6, 2.0);
+        let left = z_cluster(0.1, -0.25, 1.1, 1.0);
+        let right = z_cluster(0.1, 0.25, 1.1, 1.0);
+        let mut t = Tracker::new(TrackerConfig::default(), Vector3::z(), -Vector3::y());
+        let tracks = t.update(0.0, Some(&fit(vec![right, head, left])));
+        assert!(tracks.iter().all(|k| k.state == State::Tracked));
+        assert_eq!(tracks[0].position, head.position);
+        assert_eq!(tracks[1].position, left.position);
+        assert_eq!(tracks[2].position, right.position);
+        // A hand raised above the head at the first frame: the highest cluster is the hand,
+        // but the face the detectors placed says which one is the head.
+        let raised = z_cluster(0.1, 0.2, 1.75, 1.0);
+        let anchor = HeadAnchor { face: head.position, head: head.position + Vector3::x() * 0.08 };
+        let mut t = Tracker::new(TrackerConfig::default(), Vector3::z(), -Vector3::y());
+        let tracks = t.update_anchored(0.0, Some(&fit(vec![raised, head, left])), Some(anchor));
+        assert_eq!(tracks[0].position, head.position);
+        assert_eq!(tracks[2].position, raised.position);
+        let mut unanchored = Tracker::new(TrackerConfig::default(), Vector3::z(), -Vector3::y());
+        let tracks = unanchored.update(0.0, Some(&fit(vec![raised, head, left])));
+        assert_eq!(tracks[0].position, raised.position, "without a face the highest cluster is the head");
+    }
+
+    #[test]
+    fn a_head_drifting_onto_clutter_is_brought_back_to_the_face() {
+        let mut t = tracker();
+        let head = cluster(0.0, 1.6, 0.0, 2.0);
+        let (left, right) = (cluster(0.25, 1.1, 0.0, 1.0), cluster(-0.25, 1.1, 0.0, 1.0));
+        let anchor = HeadAnchor { face: head.position, head: head.position - Vector3::z() * 0.08 };
+        t.update_anchored(0.0, Some(&fit(vec![head, left, right])), Some(anchor));
+        // The head track wandered onto a bookshelf 0.4 m away (as on the shared real
+        // session once a hand covered the face): the face brings it back, onto its cluster.
+        t.set_position(0, Vector3::new(-0.4, 1.7, 0.0));
+        let shelf = cluster(-0.4, 1.7, 0.0, 1.5);
+        let tracks = t.update_anchored(1.0 / 30.0, Some(&fit(vec![shelf, left, right, head])), Some(anchor));
+        assert_eq!(tracks[0].position, head.position);
+        assert_eq!(t.assigned()[0].map(|m| m.cluster), Some(3));
+        // No cluster at the face at all (the hand covers it, one blob elsewhere): the head
+        // goes to the face's own estimate of the head's centre.
+        t.set_position(0, Vector3::new(-0.4, 1.7, 0.0));
+        let tracks = t.update_anchored(2.0 / 30.0, Some(&fit(vec![shelf, left, right])), Some(anchor));
+        assert!((tracks[0].position - anchor.head).norm() < 1e-12);
+        assert_eq!(tracks[0].state, State::Tracked);
+    }
+
+    #[test]
     fn gates_and_timeouts_follow_the_frame_rate() {
         let config = TrackerConfig::default();
         assert!((config.gate_m(1.0 / 30.0) - config.reinit_distance_m).abs() < 0.02);

@@ -120,6 +120,13 @@ impl SkinAdapter {
         for ((view, cam), last) in views.iter().zip(&self.cameras).zip(&self.last) {
             let region = match last {
                 Some(face) if !full => Region::around(face, SEARCH_SCALE, cam.width, cam.height),
+                // Once the face is placed in 3D, a view that neither saw it nor was lent it
+                // (turned away from it, or too far) is searched whole only on the full
+                // rounds: a whole 1280x720 view costs about 250 ms, ten regions as much.
+                None if !full && self.known.is_some() => {
+                    found.push(Vec::new());
+                    continue;
+                }
                 _ => Region { x: 0, y: 0, width: cam.width, height: cam.height },
             };
             found.push(self.detector.detect_in(view, cam.width, cam.height, region));
