@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Renders each synthetic preset (once, into out/presets/NAME), tracks it and prints its
-# agreement and 3D error per object against the exact truth. Extra arguments go to
-# `handflow track`. Usage: scripts/presets.sh [PRESET...] [-- TRACK_ARGS...]
+# Renders each synthetic preset or scene file (once, into out/presets/NAME), tracks it and
+# prints its agreement and 3D error per object against the exact truth. Extra arguments go to
+# `handflow track`. Usage: scripts/presets.sh [PRESET|SCENE.toml...] [-- TRACK_ARGS...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin=${HANDFLOW_BIN:-target/release/handflow}
@@ -15,13 +15,19 @@ trap 'rm -rf "$out"' EXIT
 echo "| preset | head: agreement / 3D rmse | left hand | right hand | switches |"
 echo "|---|---|---|---|---|"
 for p in "${presets[@]}"; do
-    rec=out/presets/$p
-    [ -f "$rec/frames.csv" ] || "$bin" render --preset "$p" --out "$rec" >/dev/null
-    "$bin" track --recording "$rec" --out "$out/$p.jsonl" "$@" 2>/dev/null
-    "$bin" eval tracks --recording "$rec" --tracks "$out/$p.jsonl" --json | python3 -c '
+    name=$(basename "$p" .toml)
+    rec=out/presets/$name
+    if [ ! -f "$rec/frames.csv" ]; then
+        case $p in
+            *.toml) "$bin" render --scene "$p" --out "$rec" >/dev/null ;;
+            *) "$bin" render --preset "$p" --out "$rec" >/dev/null ;;
+        esac
+    fi
+    "$bin" track --recording "$rec" --out "$out/$name.jsonl" "$@" 2>/dev/null
+    "$bin" eval tracks --recording "$rec" --tracks "$out/$name.jsonl" --json | python3 -c '
 import json, sys
 r = json.load(sys.stdin)
 cells = ["%.1f %% / %.1f cm" % (100 * r[o]["agreement"], 100 * r[o]["rmse_3d_m"]) for o in ("head", "left_hand", "right_hand")]
 print("| %s | %s | %d |" % (sys.argv[1], " | ".join(cells), r["identity_switches"]))
-' "$p"
+' "$name"
 done

@@ -14,6 +14,20 @@ pub const HAND_LENGTH_M: f64 = 0.17;
 /// A cluster whose skin is no longer than this along its main axis is a hand alone, metres:
 /// a hand's length plus the spread depth noise and a bent wrist add.
 pub const HAND_ONLY_EXTENT_M: f64 = 0.22;
+/// A cluster longer than this along its main axis is more than a bare arm, metres (a
+/// T-shirt leaves the hand, the forearm and part of the upper arm bare, about 0.65 m):
+/// a skin-coloured shirt joined it, its ends say nothing about where the hand is, and its
+/// centroid is kept. 0.5 m cost the shared real session's left hand 13 points of frames
+/// within 5 cm.
+pub const MAX_ARM_EXTENT_M: f64 = 0.75;
+/// A distal end closer than this to the head's centre is the head's own skin (a face or a
+/// neck the hand's component reached into when the hand came near it), not a hand, metres:
+/// about a head's radius plus a finger's width. The centroid is kept then.
+pub const HEAD_CLEARANCE_M: f64 = 0.15;
+/// Least share of the cluster's weight the distal hand's length must hold, for a hand and a
+/// forearm (the hand is wider than the forearm and holds about half): less is a few stray
+/// depths the cluster's spread took in, and the centroid is kept.
+pub const MIN_HAND_SHARE: f64 = 0.15;
 /// Squared Mahalanobis distance (3 degrees of freedom, 99 %) within which a point belongs
 /// to the cluster whose Gaussian explains it best.
 const MEMBER_CHI2: f64 = 11.34;
@@ -103,7 +117,7 @@ pub fn locate_hand(
     };
     let (low, high) = (quantile(END_TRIM), quantile(1.0 - END_TRIM));
     let extent_m = high - low;
-    if extent_m <= HAND_ONLY_EXTENT_M {
+    if extent_m <= HAND_ONLY_EXTENT_M || extent_m > MAX_ARM_EXTENT_M {
         return Some(HandLocation { position: mean, extent_m, arm: false });
     }
     let up = up.try_normalize(1e-12).unwrap_or_else(Vector3::y);
@@ -123,7 +137,7 @@ pub fn locate_hand(
             weight += p.weight;
         }
     }
-    if weight <= 0.0 {
+    if weight < MIN_HAND_SHARE * total || (sum / weight - head).norm() < HEAD_CLEARANCE_M {
         return Some(HandLocation { position: mean, extent_m, arm: false });
     }
     Some(HandLocation { position: sum / weight, extent_m, arm: true })
@@ -192,6 +206,48 @@ mod tests {
         let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
         let found = locate(&points, whole, head);
         assert!((found.position - hand_centre).norm() < 0.035, "{:?} vs {hand_centre:?}", found.position);
+    }
+
+    #[test]
+    fn skin_longer_than_an_arm_keeps_its_centroid() {
+        // A skin-coloured shirt from the other shoulder to the fingertips: 0.95 m of "skin",
+        // more than a bare arm.
+        let head = Vector3::new(0.0, 1.6, 0.0);
+        let shoulder = Vector3::new(-0.2, 1.4, 0.0);
+        let tips = Vector3::new(0.4, 1.2, 0.7);
+        let points = capsule(shoulder, tips, 0.04, 60);
+        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let found = locate(&points, whole, head);
+        assert!(!found.arm);
+        assert!(found.extent_m > MAX_ARM_EXTENT_M);
+        assert!((found.position - whole).norm() < 0.01);
+    }
+
+    #[test]
+    fn a_hand_whose_cluster_reached_into_the_face_keeps_its_centroid() {
+        // A hand below the chin whose component took in the chin and neck: the upper end is
+        // the head's skin, not the hand.
+        let head = Vector3::new(0.0, 1.6, 0.0);
+        let hand = Vector3::new(-0.05, 1.3, 0.15);
+        let mut points = capsule(hand - Vector3::y() * 0.08, hand + Vector3::y() * 0.08, 0.04, 20);
+        points.extend(capsule(Vector3::new(0.0, 1.45, 0.08), Vector3::new(0.0, 1.56, 0.06), 0.04, 15));
+        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let found = locate(&points, whole, head);
+        assert!(!found.arm, "{found:?}");
+        assert!((found.position - whole).norm() < 0.01);
+    }
+
+    #[test]
+    fn a_few_stray_depths_beyond_a_hand_do_not_move_it() {
+        let head = Vector3::new(0.0, 1.6, 0.0);
+        let hand = Vector3::new(-0.2, 1.4, 0.3);
+        let mut points = capsule(hand - Vector3::y() * 0.08, hand + Vector3::y() * 0.08, 0.04, 30);
+        // A thin trail of stray points above it, as ghosts on a skin-coloured shirt give.
+        points.extend(capsule(hand + Vector3::y() * 0.1, hand + Vector3::y() * 0.3, 0.01, 5));
+        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let found = locate(&points, whole, head);
+        assert!(!found.arm, "{found:?}");
+        assert!((found.position - whole).norm() < 0.01);
     }
 
     #[test]
