@@ -34,6 +34,10 @@ const MEMBER_CHI2: f64 = 11.34;
 /// Share of the members' weight ignored at each end of the main axis (stray depths).
 const END_TRIM: f64 = 0.03;
 
+/// A component's position Gaussian prepared for scoring points: mean, inverse covariance,
+/// and log mixing weight less half the log determinant.
+type PositionGaussian = (Vector3<f64>, Matrix3<f64>, f64);
+
 /// How a cluster's hand was located.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct HandLocation {
@@ -61,7 +65,7 @@ pub fn locate_hand(
     up: Vector3<f64>,
 ) -> Option<HandLocation> {
     let target = components.get(cluster)?;
-    let gaussians: Vec<Option<(Vector3<f64>, Matrix3<f64>, f64)>> = components
+    let gaussians: Vec<Option<PositionGaussian>> = components
         .iter()
         .map(|c| {
             if c.empty {
@@ -83,7 +87,7 @@ pub fn locate_hand(
             if (d.transpose() * target_inverse * d)[(0, 0)] > MEMBER_CHI2 {
                 return false;
             }
-            let score = |g: &(Vector3<f64>, Matrix3<f64>, f64)| {
+            let score = |g: &PositionGaussian| {
                 let d = p.position - g.0;
                 g.2 - 0.5 * (d.transpose() * g.1 * d)[(0, 0)]
             };
