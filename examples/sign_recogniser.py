@@ -17,7 +17,7 @@ import sys
 
 import iceoryx2 as iox2
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 END_OF_STREAM = 1
 LOST = 2
 # A hand is at the face closer than this to the head's centre (metres), and leaves it
