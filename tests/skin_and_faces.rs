@@ -79,3 +79,36 @@ fn faces_found_in_frontal_views_and_lent_to_the_others_make_the_skin_decision_pr
         }
     }
 }
+
+#[test]
+fn a_camera_mounted_sideways_finds_the_face_once_its_frames_are_turned_upright() {
+    use handflow_flow::faces::Region;
+    for turns in [1u8, 2, 3] {
+        let mut spec = SceneSpec::preset("signer-3cam").expect("preset");
+        spec.cameras.mount_quarter_turns = vec![0, turns, 0];
+        let renderer = Renderer::new(&spec).expect("renderer");
+        let cam = &renderer.rig().cameras[1];
+        let (w, h) = (cam.width, cam.height);
+        let view = renderer.view_len();
+        let mut rgb = vec![0u8; view * 3];
+        let mut masks = vec![0u8; view];
+        let mut detector = FaceDetector::new().expect("model loads");
+        let (mut turned, mut raw) = (0, 0);
+        for frame in (0..40).step_by(5) {
+            renderer.render_into(frame, &mut rgb, &mut masks);
+            let head = renderer.truth(frame, &masks)[0].1.pixel[1].expect("head projects");
+            let image = &rgb[view..2 * view];
+            let whole = Region { x: 0, y: 0, width: w, height: h };
+            let on_head = |faces: &[handflow_flow::faces::FaceBox]| {
+                faces.iter().any(|f| f.contains(head[0] as f32, head[1] as f32))
+            };
+            turned += usize::from(on_head(&detector.detect_in_turned(image, w, h, whole, turns)));
+            raw += usize::from(on_head(&detector.detect_in(image, w, h, whole)));
+        }
+        eprintln!("turns {turns}: face on the head in {turned} of 8 frames turned upright, {raw} as delivered");
+        assert!(turned >= 6, "turns {turns}: the upright frames show a frontal face ({turned} of 8)");
+        if turns % 2 == 1 {
+            assert!(raw < turned, "turns {turns}: a sideways face is beyond a frontal detector");
+        }
+    }
+}

@@ -39,6 +39,8 @@ impl FaceBox {
 pub struct FaceDetector {
     detector: Box<dyn Detector>,
     gray: Vec<u8>,
+    /// The grey region turned upright, for cameras mounted sideways.
+    upright: Vec<u8>,
 }
 
 /// Faces smaller than this many pixels are below the model's window and never found.
@@ -52,7 +54,7 @@ impl FaceDetector {
         detector.set_score_thresh(2.0);
         detector.set_pyramid_scale_factor(0.8);
         detector.set_slide_window_step(4, 4);
-        Ok(Self { detector, gray: Vec::new() })
+        Ok(Self { detector, gray: Vec::new(), upright: Vec::new() })
     }
 
     /// Frontal faces in an RGB8 image. Images smaller than a face window give none.
@@ -64,6 +66,14 @@ impl FaceDetector {
     /// detector's cost grows with the area searched: a region around the last face costs a
     /// few percent of the frame.
     pub fn detect_in(&mut self, rgb: &[u8], width: u32, height: u32, region: Region) -> Vec<FaceBox> {
+        self.detect_in_turned(rgb, width, height, region, 0)
+    }
+
+    /// [`FaceDetector::detect_in`] on a camera mounted `turns` clockwise quarter turns from
+    /// upright ([`handflow_protocol::Camera::mount_quarter_turns`]): the region is turned
+    /// upright before detection, since the model finds upright frontal faces only, and the
+    /// boxes come back in the raw image's pixels.
+    pub fn detect_in_turned(&mut self, rgb: &[u8], width: u32, height: u32, region: Region, turns: u8) -> Vec<FaceBox> {
         let region = region.clamped(width, height);
         if region.width < MIN_FACE_PX
             || region.height < MIN_FACE_PX
@@ -80,19 +90,42 @@ impl FaceDetector {
                     .map(|p| ((u32::from(p[0]) * 77 + u32::from(p[1]) * 150 + u32::from(p[2]) * 29) >> 8) as u8),
             );
         }
-        let image = ImageData::new(&self.gray, region.width, region.height);
+        let (rw, rh) = (region.width, region.height);
+        let turns = turns % 4;
+        let (uw, uh) = if turns % 2 == 1 { (rh, rw) } else { (rw, rh) };
+        if turns != 0 {
+            self.upright.clear();
+            self.upright.resize(self.gray.len(), 0);
+            let (w, h) = (rw as usize, rh as usize);
+            for y in 0..h {
+                for x in 0..w {
+                    // Clockwise turns: one brings raw (x, y) to (h - 1 - y, x).
+                    let (u, v) = match turns {
+                        1 => (h - 1 - y, x),
+                        2 => (w - 1 - x, h - 1 - y),
+                        _ => (y, w - 1 - x),
+                    };
+                    self.upright[v * uw as usize + u] = self.gray[y * w + x];
+                }
+            }
+            std::mem::swap(&mut self.gray, &mut self.upright);
+        }
+        let image = ImageData::new(&self.gray, uw, uh);
+        let (rw, rh) = (rw as f32, rh as f32);
         self.detector
             .detect(&image)
             .into_iter()
             .map(|f| {
                 let b = f.bbox();
-                FaceBox {
-                    x: (b.x() + region.x as i32) as f32,
-                    y: (b.y() + region.y as i32) as f32,
-                    width: b.width() as f32,
-                    height: b.height() as f32,
-                    score: f.score(),
-                }
+                let (u0, v0, bw, bh) = (b.x() as f32, b.y() as f32, b.width() as f32, b.height() as f32);
+                // The upright box back in the region's raw pixels.
+                let (x, y, width, height) = match turns {
+                    0 => (u0, v0, bw, bh),
+                    1 => (v0, rh - u0 - bw, bh, bw),
+                    2 => (rw - u0 - bw, rh - v0 - bh, bw, bh),
+                    _ => (rw - v0 - bh, u0, bh, bw),
+                };
+                FaceBox { x: x + region.x as f32, y: y + region.y as f32, width, height, score: f.score() }
             })
             .collect()
     }

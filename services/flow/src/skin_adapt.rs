@@ -129,7 +129,7 @@ impl SkinAdapter {
                 }
                 _ => Region { x: 0, y: 0, width: cam.width, height: cam.height },
             };
-            found.push(self.detector.detect_in(view, cam.width, cam.height, region));
+            found.push(self.detector.detect_in_turned(view, cam.width, cam.height, region, cam.mount_quarter_turns));
         }
         let fused = fuse_faces_remembering(&self.cameras, &found, self.known.as_ref());
         self.last.clone_from(&fused.boxes);
