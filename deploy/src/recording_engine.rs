@@ -34,11 +34,7 @@ pub fn cluster_face_cue(
     face: Option<handflow_flow::stream::FaceCue>,
     fps: f64,
 ) -> Option<handflow_cluster::stage::FaceCue> {
-    face.map(|f| handflow_cluster::stage::FaceCue {
-        centre: nalgebra::Vector3::from(f.centre),
-        width_m: f.width_m,
-        age_s: f.age_frames as f64 / fps.max(1e-9),
-    })
+    face.map(|f| handflow_cluster::stage::FaceCue::new(f.centre, f.age_frames, fps))
 }
 
 /// The engine configuration for trajectories on a recording: the stream configuration

@@ -5,7 +5,7 @@
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use crate::em::Component;
-use crate::WeightedPoint;
+use crate::{weighted_moments, WeightedPoint};
 
 /// Length of an adult hand from the fingertips to the wrist, metres (16-20 cm); the part of
 /// an arm's skin taken as the hand. Its points' centroid is near the palm centre (the mean
@@ -79,7 +79,7 @@ pub fn locate_hand(
         .collect();
     let own_gaussian = gaussians[cluster]?;
     let target_inverse = own_gaussian.1;
-    let members: Vec<&WeightedPoint> = points
+    let members: Vec<WeightedPoint> = points
         .iter()
         .filter(|p| p.is_usable())
         .filter(|p| {
@@ -94,20 +94,16 @@ pub fn locate_hand(
             let own = score(&own_gaussian);
             gaussians.iter().enumerate().all(|(j, g)| j == cluster || g.as_ref().is_none_or(|g| score(g) <= own))
         })
+        .copied()
         .collect();
-    let total: f64 = members.iter().map(|p| p.weight).sum();
-    if members.is_empty() || total <= 0.0 {
-        return None;
-    }
-    let mean = members.iter().fold(Vector3::zeros(), |s, p| s + p.position * p.weight) / total;
-    let scatter = members.iter().fold(Matrix3::zeros(), |s, p| {
-        let d = p.position - mean;
-        s + d * d.transpose() * p.weight
-    }) / total;
-    let eigen = SymmetricEigen::new(scatter);
+    // Positions only: velocities weigh nothing in the moments.
+    let moments = weighted_moments(&members, 0.0)?;
+    let total = moments.total_weight;
+    let mean: Vector3<f64> = moments.mean.fixed_rows::<3>(0).into_owned();
+    let eigen = SymmetricEigen::new(moments.covariance.fixed_view::<3, 3>(0, 0).into_owned());
     let main = eigen.eigenvalues.imax();
     let axis: Vector3<f64> = eigen.eigenvectors.column(main).into_owned();
-    let mut along: Vec<(f64, &WeightedPoint)> = members.iter().map(|p| ((p.position - mean).dot(&axis), *p)).collect();
+    let mut along: Vec<(f64, &WeightedPoint)> = members.iter().map(|p| ((p.position - mean).dot(&axis), p)).collect();
     along.sort_by(|a, b| a.0.total_cmp(&b.0));
     let quantile = |share: f64| {
         let mut acc = 0.0;
@@ -173,6 +169,10 @@ mod tests {
         out
     }
 
+    fn centroid(points: &[WeightedPoint]) -> Vector3<f64> {
+        points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64
+    }
+
     fn locate(points: &[WeightedPoint], seed: Vector3<f64>, head: Vector3<f64>) -> HandLocation {
         let fit =
             fit_mixture(points, &[(seed, Vector3::zeros())], &EmConfig { outliers: false, ..EmConfig::default() })
@@ -191,7 +191,7 @@ mod tests {
         let hand_centre = wrist + (tips - wrist) * 0.45;
         let mut points = capsule(elbow, wrist, 0.03, 30);
         points.extend(capsule(wrist, tips, 0.04, 20));
-        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let whole = centroid(&points);
         assert!((whole - hand_centre).norm() > 0.1, "the centroid is on the forearm");
         let found = locate(&points, whole, head);
         assert!(found.arm);
@@ -207,7 +207,7 @@ mod tests {
         let hand_centre = wrist + (tips - wrist) * 0.45;
         let mut points = capsule(elbow, wrist, 0.03, 30);
         points.extend(capsule(wrist, tips, 0.04, 20));
-        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let whole = centroid(&points);
         let found = locate(&points, whole, head);
         assert!((found.position - hand_centre).norm() < 0.035, "{:?} vs {hand_centre:?}", found.position);
     }
@@ -220,7 +220,7 @@ mod tests {
         let shoulder = Vector3::new(-0.2, 1.4, 0.0);
         let tips = Vector3::new(0.4, 1.2, 0.7);
         let points = capsule(shoulder, tips, 0.04, 60);
-        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let whole = centroid(&points);
         let found = locate(&points, whole, head);
         assert!(!found.arm);
         assert!(found.extent_m > MAX_ARM_EXTENT_M);
@@ -235,7 +235,7 @@ mod tests {
         let hand = Vector3::new(-0.05, 1.3, 0.15);
         let mut points = capsule(hand - Vector3::y() * 0.08, hand + Vector3::y() * 0.08, 0.04, 20);
         points.extend(capsule(Vector3::new(0.0, 1.45, 0.08), Vector3::new(0.0, 1.56, 0.06), 0.04, 15));
-        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let whole = centroid(&points);
         let found = locate(&points, whole, head);
         assert!(!found.arm, "{found:?}");
         assert!((found.position - whole).norm() < 0.01);
@@ -248,7 +248,7 @@ mod tests {
         let mut points = capsule(hand - Vector3::y() * 0.08, hand + Vector3::y() * 0.08, 0.04, 30);
         // A thin trail of stray points above it, as ghosts on a skin-coloured shirt give.
         points.extend(capsule(hand + Vector3::y() * 0.1, hand + Vector3::y() * 0.3, 0.01, 5));
-        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let whole = centroid(&points);
         let found = locate(&points, whole, head);
         assert!(!found.arm, "{found:?}");
         assert!((found.position - whole).norm() < 0.01);
@@ -260,7 +260,7 @@ mod tests {
         let wrist = Vector3::new(0.2, 1.2, 0.2);
         let tips = Vector3::new(0.2, 1.38, 0.22);
         let points = capsule(wrist, tips, 0.04, 20);
-        let whole = points.iter().fold(Vector3::zeros(), |s, p| s + p.position) / points.len() as f64;
+        let whole = centroid(&points);
         let found = locate(&points, whole, head);
         assert!(!found.arm);
         assert!((found.position - whole).norm() < 0.01);

@@ -43,20 +43,21 @@ pub const FACE_TO_HEAD_CENTRE_M: f64 = 0.08;
 pub struct FaceCue {
     /// Centre of the face, world metres.
     pub centre: Vector3<f64>,
-    /// Physical width of the detector's box, metres.
-    pub width_m: f64,
     /// Seconds between the frame the face was detected on and this one.
     pub age_s: f64,
 }
 
 impl FaceCue {
+    /// A face centred at `centre`, detected `age_frames` frame sets before this one of a
+    /// stream at `fps`.
+    pub fn new(centre: [f64; 3], age_frames: u64, fps: f64) -> FaceCue {
+        FaceCue { centre: Vector3::from(centre), age_s: age_frames as f64 / fps.max(1e-9) }
+    }
+
     /// The cue of a particle header (`None` when it carries no face).
     pub fn from_header(header: &handflow_protocol::messages::ParticleHeader) -> Option<FaceCue> {
-        (header.face_known == 1).then(|| FaceCue {
-            centre: Vector3::from(header.face_centre_m),
-            width_m: header.face_width_m,
-            age_s: header.face_age_frames as f64 / header.frame_rate_hz.max(1e-9),
-        })
+        (header.face_known == 1)
+            .then(|| FaceCue::new(header.face_centre_m, header.face_age_frames, header.frame_rate_hz))
     }
 }
 

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use handflow_flow::stream::{scene_point_count, scene_points, stream_engine_config, FaceCue, FlowStream};
+use handflow_flow::stream::{frames_in, scene_point_count, scene_points, stream_engine_config, FaceCue, FlowStream};
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_protocol::ipc::{self, Mode, Next, Output, ServiceNames};
 use handflow_protocol::messages::{ParticleHeader, ScenePoint, END_OF_STREAM, PROTOCOL_VERSION};
@@ -29,15 +29,6 @@ struct Args {
 /// Seconds between face detections in live mode: once a second instead of three times
 /// (measured on signer-3cam at 30 fps, 2 cores: see BENCHMARKS.md).
 const LIVE_DETECT_INTERVAL_S: f64 = 1.0;
-
-/// Frames between face detections in live mode at `fps`.
-fn live_detect_every(fps: f64) -> u64 {
-    if fps.is_finite() && fps > 0.0 {
-        ((fps * LIVE_DETECT_INTERVAL_S).round() as u64).max(1)
-    } else {
-        1
-    }
-}
 
 /// What the stage remembers of a frame until its estimate is out.
 #[derive(Clone, Copy, Debug)]
@@ -77,7 +68,7 @@ fn run(args: Args) -> Result<()> {
         Mode::Live => FlowStream::new(engine)
             .with_backlog_limit(3)
             .without_waiting_for_models()
-            .with_detect_every(live_detect_every(fps)),
+            .with_detect_every(frames_in(fps, LIVE_DETECT_INTERVAL_S)),
     };
     let mut connected = false;
     let mut last_sequence: Option<u64> = None;

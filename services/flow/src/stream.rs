@@ -45,15 +45,17 @@ pub const DETECT_INTERVAL_S: f64 = 1.0 / 3.0;
 /// Frames between face detections for a stream at `fps` ([`DETECT_INTERVAL_S`], at least
 /// every frame, at most every [`DEFAULT_DETECT_EVERY`]-th).
 pub fn detect_every_for_rate(fps: f64) -> u64 {
-    frames_for(fps, DETECT_INTERVAL_S).min(DEFAULT_DETECT_EVERY)
+    frames_in(fps, DETECT_INTERVAL_S).min(DEFAULT_DETECT_EVERY)
 }
 
 /// Frames between detecting faces and using the models for a stream at `fps`.
 pub fn model_lag_for_rate(fps: f64) -> u64 {
-    frames_for(fps, MODEL_LAG_S).min(MODEL_LAG)
+    frames_in(fps, MODEL_LAG_S).min(MODEL_LAG)
 }
 
-fn frames_for(fps: f64, seconds: f64) -> u64 {
+/// Frames in `seconds` of a stream at `fps`, rounded, at least 1 (1 for a rate that is not
+/// a positive number).
+pub fn frames_in(fps: f64, seconds: f64) -> u64 {
     if fps.is_finite() && fps > 0.0 {
         ((fps * seconds).round() as u64).max(1)
     } else {
