@@ -385,12 +385,6 @@ pub fn extremity_means(
     if usable.is_empty() {
         return None;
     }
-    let mean_of = |set: &[&WeightedPoint]| {
-        let w: f64 = set.iter().map(|p| p.weight).sum();
-        let pos = set.iter().fold(Vector3::zeros(), |a, p| a + p.position * p.weight) / w;
-        let vel = set.iter().fold(Vector3::zeros(), |a, p| a + p.velocity * p.weight) / w;
-        (pos, vel)
-    };
     // Clutter (false skin on a wall, stray depths) must not become an extremity: only points
     // within a person's reach of the weighted median take part.
     let median: Vector3<f64> = Vector3::from_fn(|d, _| weighted_median(&usable, |p| p.position[d]));
@@ -402,6 +396,35 @@ pub fn extremity_means(
     let left = extreme(&lower, right, 0.2, false);
     let right_side = extreme(&lower, right, 0.2, true);
     Some([mean_of(&top), mean_of(&left), mean_of(&right_side)])
+}
+
+/// Where to look again for a hand whose track was lost: the mean of the points holding a
+/// fifth of the weight at the `side` end (along `side`) of the lower half of the points
+/// within `reach_m` of the head. A lost track's last position is stale: a component seeded
+/// there stays empty while the hand, back in view, is swallowed by the head's or the other
+/// hand's component, so the hand would never come back. `None` without usable points there.
+pub fn side_extremity(
+    points: &[WeightedPoint],
+    head: Vector3<f64>,
+    reach_m: f64,
+    up: Vector3<f64>,
+    side: Vector3<f64>,
+) -> Option<(Vector3<f64>, Vector3<f64>)> {
+    let near: Vec<&WeightedPoint> =
+        points.iter().filter(|p| p.is_usable() && (p.position - head).norm() <= reach_m).collect();
+    if near.is_empty() {
+        return None;
+    }
+    let lower = extreme(&near, up, 0.5, false);
+    Some(mean_of(&extreme(&lower, side, 0.2, true)))
+}
+
+/// Weighted mean position and velocity of a non-empty set.
+fn mean_of(set: &[&WeightedPoint]) -> (Vector3<f64>, Vector3<f64>) {
+    let w: f64 = set.iter().map(|p| p.weight).sum();
+    let pos = set.iter().fold(Vector3::zeros(), |a, p| a + p.position * p.weight) / w;
+    let vel = set.iter().fold(Vector3::zeros(), |a, p| a + p.velocity * p.weight) / w;
+    (pos, vel)
 }
 
 /// Radius around the points' weighted median within which extremities are looked for,
@@ -701,6 +724,29 @@ mod tests {
                 proptest::prop_assert!(comp.covariance.symmetric_eigen().eigenvalues.iter().all(|&e| e > 0.0));
             }
         }
+    }
+
+    #[test]
+    fn a_lost_hand_is_looked_for_at_its_side_of_the_body_within_reach() {
+        let at = |x: f64, y: f64| WeightedPoint {
+            position: Vector3::new(x, y, 0.0),
+            velocity: Vector3::new(0.0, 0.5, 0.0),
+            weight: 1.0,
+        };
+        // Head at the top, a neck below it, the hands low on either side, and skin-like
+        // clutter far to the left, out of reach.
+        let mut points: Vec<WeightedPoint> = Vec::new();
+        for (cx, cy, n) in [(0.0, 1.6, 40), (0.0, 1.4, 10), (-0.3, 1.1, 20), (0.3, 1.1, 20), (2.5, 1.0, 30)] {
+            points.extend((0..n).map(|i| at(cx + 0.002 * f64::from(i), cy)));
+        }
+        let head = Vector3::new(0.0, 1.6, 0.0);
+        let up = Vector3::y();
+        let (left, vel) = side_extremity(&points, head, 1.0, up, Vector3::x()).expect("points in reach");
+        assert!((left - Vector3::new(0.3, 1.1, 0.0)).norm() < 0.05, "{left:?}");
+        assert!((vel.y - 0.5).abs() < 1e-9);
+        let (right, _) = side_extremity(&points, head, 1.0, up, -Vector3::x()).expect("points in reach");
+        assert!((right - Vector3::new(-0.3, 1.1, 0.0)).norm() < 0.05, "{right:?}");
+        assert!(side_extremity(&points, Vector3::new(9.0, 9.0, 0.0), 1.0, up, Vector3::x()).is_none());
     }
 
     #[test]

@@ -8,7 +8,7 @@ use handflow_protocol::messages::ScenePoint;
 use handflow_protocol::Camera;
 use nalgebra::{Point3, Vector3};
 
-use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, Component, EmConfig, EmFit};
+use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, side_extremity, Component, EmConfig, EmFit};
 use crate::hand::locate_hand;
 use crate::tracks::{HeadAnchor, Measurement, NotStarted, State, Tracker, TrackerConfig};
 use crate::WeightedPoint;
@@ -199,6 +199,19 @@ impl ClusterStage {
         if let (Some(init), Some(a)) = (initial.as_mut(), anchor) {
             if (init[0].0 - a.face).norm() > self.tracker.config().face_anchor_m {
                 init[0] = (a.face, Vector3::zeros());
+            }
+        }
+        // A lost hand's seed goes where a hand on its side would be now, not where it was lost.
+        if let (Some(init), Some(tracks)) = (initial.as_mut(), self.tracker.tracks()) {
+            for k in 1..3 {
+                if tracks[k].state != State::Lost {
+                    continue;
+                }
+                let side = if k == 1 { self.signer_left } else { -self.signer_left };
+                let reach = self.tracker.config().reach_m;
+                if let Some(seed) = side_extremity(&self.points, init[0].0, reach, self.up, side) {
+                    init[k] = seed;
+                }
             }
         }
         let mut fit = initial.and_then(|init| {
@@ -431,5 +444,52 @@ mod tests {
         assert_eq!(stage.last_point_count(), 600);
         assert!(stage.last_fit().is_some_and(|f| f.components.len() >= 3));
         assert!(stage.assigned().iter().all(Option::is_some));
+    }
+
+    #[test]
+    fn a_lost_hand_is_found_again_beside_the_head_even_with_clutter_far_away() {
+        let blob = |x: f32, y: f32, n: usize| {
+            (0..n).map(move |i| ScenePoint {
+                position: [x + (i % 10) as f32 * 0.004, y + (i / 10) as f32 * 0.004, 0.0],
+                velocity: [0.0; 3],
+                weight: 1.0,
+                skin: 1.0,
+            })
+        };
+        // Skin-coloured clutter out of reach takes the spare components' seeds.
+        let clutter = || blob(3.0, 0.5, 30).chain(blob(-2.5, 2.5, 30));
+        let mut stage = ClusterStage::new(&reference(0.0), Vector3::y(), false).with_hand_localisation(false);
+        let fps = 30.0;
+        let mut t = 0.0;
+        let all: Vec<ScenePoint> = blob(0.0, 1.6, 200).chain(blob(0.3, 1.1, 200)).chain(blob(-0.3, 1.1, 200)).collect();
+        let start = stage.update(t, fps, 0.0, &all, None);
+        assert!(start.iter().all(|e| e.state == State::Tracked));
+        // The signer's left hand (+X) sweeps out of the views and stays out for a second:
+        // its track coasts on and is lost far from the body.
+        for k in 0..40 {
+            t += 1.0 / fps;
+            let mut points: Vec<ScenePoint> =
+                blob(0.0, 1.6, 200).chain(blob(-0.3, 1.1, 200)).chain(clutter()).collect();
+            if k < 8 {
+                points.extend(blob(0.3 + 0.05 * (k + 1) as f32, 1.1, 200));
+            }
+            stage.update(t, fps, 0.0, &points, None);
+        }
+        t += 1.0 / fps;
+        let none: Vec<ScenePoint> = blob(0.0, 1.6, 200).chain(blob(-0.3, 1.1, 200)).chain(clutter()).collect();
+        assert_eq!(stage.update(t, fps, 0.0, &none, None)[1].state, State::Lost);
+        // It comes back up by the chin, where the head's component would swallow it.
+        let mut back = None;
+        for _ in 0..3 {
+            t += 1.0 / fps;
+            let points: Vec<ScenePoint> =
+                blob(0.0, 1.6, 200).chain(blob(-0.3, 1.1, 200)).chain(blob(0.2, 1.42, 200)).chain(clutter()).collect();
+            back = Some(stage.update(t, fps, 0.0, &points, None));
+        }
+        let back = back.expect("updated");
+        assert_eq!(back[1].state, State::Tracked, "{back:?}");
+        let hand = Vector3::new(0.218, 1.438, 0.0);
+        assert!((back[1].position - hand).norm() < 0.03, "left hand at {:?}", back[1].position);
+        assert!((back[0].position - Vector3::new(0.018, 1.638, 0.0)).norm() < 0.03, "head at {:?}", back[0].position);
     }
 }

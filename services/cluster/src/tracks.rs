@@ -462,9 +462,13 @@ impl Tracker {
             // track's measurement is that object split in two.
             let others: Vec<Vector3<f64>> =
                 (0..3).filter(|&o| o != k).filter_map(|o| best.0[o].map(|i| clusters[i].position)).collect();
+            // A hand comes back within reach of the head, as tracks start (skin-like
+            // clutter across the room never becomes a hand).
+            let head = best.0[0].map_or(predicted[0].0, |i| clusters[i].position);
             let free = (0..clusters.len())
                 .filter(|i| !best.0.contains(&Some(*i)) && !taken.contains(i))
                 .filter(|&i| others.iter().all(|p| (clusters[i].position - p).norm() > self.config.split_distance_m))
+                .filter(|&i| k == 0 || (clusters[i].position - head).norm() <= self.config.reach_m)
                 .min_by(|&a, &b| cost(k, clusters[a]).total_cmp(&cost(k, clusters[b])));
             if let Some(i) = free {
                 best.0[k] = Some(i);
