@@ -19,7 +19,7 @@ fn estimated_frames(configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>, 
     let rec = Recording::open(render_preset(dir.path(), "signer-3cam", FRAMES, Some((160, 120)))).unwrap();
     let rig = rec.rig();
     let reference = rig.most_frontal_camera();
-    let config = stream_engine_config(Variant::Handflow, None, rec.frame_rate());
+    let config = stream_engine_config(Variant::Handflow, None, rec.frame_rate(), &rig.cameras, reference);
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference).unwrap();
     let mut stream = configure(FlowStream::new(engine));
     let mut buf = vec![0u8; rec.frame_set_len()];

@@ -524,8 +524,10 @@ fn is_broken_pipe(err: &anyhow::Error) -> bool {
 }
 
 /// Default log filter of `track` and `inspect`: warnings, and the info lines of the flow
-/// stream and the cluster stage (state changes only) and of the tracker command itself.
-const TRACKER_LOG: &str = "warn,handflow_flow::stream=info,handflow_cluster::stage=info,handflow::commands=info";
+/// stream and the cluster stage (state changes only), of the engine configuration (its
+/// working level) and of the tracker command itself.
+const TRACKER_LOG: &str =
+    "warn,handflow_flow::stream=info,handflow_cluster::stage=info,handflow::commands=info,handflow::recording_engine=info";
 
 fn init_logging(default_level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_env("HANDFLOW_LOG")

@@ -39,15 +39,19 @@ pub fn cluster_face_cue(
 
 /// The engine configuration for trajectories on a recording: the stream configuration
 /// ([`stream_engine_config`], where each choice is explained) at the recording's frame
-/// rate, then the overrides (`field=value`).
+/// rate and for its cameras (`reference` is the engine's), then the overrides
+/// (`field=value`).
 pub fn recording_engine_config(
     variant: Variant,
     particles_per_ray: Option<usize>,
     fps: f64,
+    cameras: &[Camera],
+    reference: usize,
     overrides: &[String],
 ) -> Result<EngineConfig> {
-    let config = apply_overrides(stream_engine_config(variant, particles_per_ray, fps), overrides)?;
+    let config = apply_overrides(stream_engine_config(variant, particles_per_ray, fps, cameras, reference), overrides)?;
     config.validate().map_err(anyhow::Error::msg)?;
+    tracing::info!("{}", handflow_flow::stream::working_level_summary(&config, cameras, reference));
     Ok(config)
 }
 
@@ -107,8 +111,9 @@ pub fn bench_recording(
 ) -> Result<RecordingFlowReport> {
     let rec = Recording::open(dir)?;
     let rig = rec.rig().clone();
-    let config = recording_engine_config(variant, particles_per_ray, rec.frame_rate(), overrides)?;
     let reference = rig.most_frontal_camera();
+    let config =
+        recording_engine_config(variant, particles_per_ray, rec.frame_rate(), &rig.cameras, reference, overrides)?;
     let skin_weight = config.skin_weight;
     let mut engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let frames = max_frames.unwrap_or(rec.len()).min(rec.len());

@@ -92,8 +92,15 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
         "frame {frame} is the first frame read: it has no estimate (the engine needs the frame before); choose a \
          later one"
     );
-    let config = recording_engine_config(options.variant, options.particles_per_ray, fps, &options.overrides)?;
     let reference = rig.most_frontal_camera();
+    let config = recording_engine_config(
+        options.variant,
+        options.particles_per_ray,
+        fps,
+        &rig.cameras,
+        reference,
+        &options.overrides,
+    )?;
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let mut flow: FlowStream<usize> = FlowStream::new(engine).with_frame_rate(fps);
     let mut stage = ClusterStage::new(&rig.cameras[reference], up.direction, options.centre_correction)

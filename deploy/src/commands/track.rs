@@ -92,8 +92,15 @@ pub fn track_recording(
     let up = rig.world_up();
     tracing::info!("world up {:?} ({})", up.direction.as_slice(), up.source);
     let fps = rec.frame_rate();
-    let config = recording_engine_config(options.variant, options.particles_per_ray, fps, &options.overrides)?;
     let reference = rig.most_frontal_camera();
+    let config = recording_engine_config(
+        options.variant,
+        options.particles_per_ray,
+        fps,
+        &rig.cameras,
+        reference,
+        &options.overrides,
+    )?;
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let frames = rec.len();
     anyhow::ensure!(frames >= 2, "recording `{}` needs at least 2 frames, has {frames}", dir.display());

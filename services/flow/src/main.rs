@@ -51,7 +51,8 @@ fn run(args: Args) -> Result<()> {
     let Some((rig_header, rig)) = ipc::wait_for_rig(&node, &names)? else { return Ok(()) };
     let fps = rig_header.frame_rate_hz;
     let reference = rig.most_frontal_camera();
-    let config = stream_engine_config(variant, None, fps);
+    let config = stream_engine_config(variant, None, fps, &rig.cameras, reference);
+    tracing::info!("{}", handflow_flow::stream::working_level_summary(&config, &rig.cameras, reference));
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let (width, height, views) = (rig.cameras[0].width, rig.cameras[0].height, rig.cameras.len() as u32);
     let frames = ipc::frames_input(&node, &names, args.mode)?;

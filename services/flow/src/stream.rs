@@ -85,8 +85,9 @@ pub const STREAM_VELOCITY_PRIOR_DEPTH: f32 = 0.15;
 pub const STREAM_COLD_START_PASSES: usize = 8;
 
 /// The engine configuration for trajectories: the variant's defaults, skin coverage, the
-/// forwards/backwards likelihood, the search space of a signer at `fps`, the
-/// half-resolution grid (a quarter of the rays is plenty of points for clustering), 2
+/// forwards/backwards likelihood, the search space of a signer at `fps`, the grid of the
+/// working level the rig's image size and expected palm size give ([`working_level`]:
+/// a hand needs a few hundred points, not every pixel), 2
 /// extra coarse loops instead of 7 once the previous frame's posterior is the prior (it
 /// replaces most of the exploration a first frame needs), extra passes over the first
 /// frame ([`STREAM_COLD_START_PASSES`]) and no weighted-median refinement (on the
@@ -94,11 +95,20 @@ pub const STREAM_COLD_START_PASSES: usize = 8;
 /// measurably moved points off the hands), and 3x3 support windows instead of 5x5 on every
 /// level (the same trajectories on every preset, 1.3x faster), and a weaker prior on
 /// motion in depth ([`STREAM_VELOCITY_PRIOR_DEPTH`]). BENCHMARKS.md has the measurements.
-pub fn stream_engine_config(variant: Variant, particles_per_ray: Option<usize>, fps: f64) -> EngineConfig {
+pub fn stream_engine_config(
+    variant: Variant,
+    particles_per_ray: Option<usize>,
+    fps: f64,
+    cameras: &[Camera],
+    reference: usize,
+) -> EngineConfig {
     let defaults = EngineConfig::for_variant(variant);
+    let finest_level = cameras.get(reference).map_or(1, |_| working_level(expected_palm_px(cameras, reference)));
     EngineConfig {
         particles_per_ray: particles_per_ray.unwrap_or(STREAM_PARTICLES_PER_RAY),
-        finest_level: 1,
+        finest_level,
+        // The working level and one coarser (as the half-resolution grid has always run).
+        pyramid_levels: finest_level + 2,
         warm_coarse_extra_loops: Some(2.min(defaults.coarse_extra_loops)),
         cold_start_passes: STREAM_COLD_START_PASSES,
         refine_radius: 0,
@@ -110,6 +120,87 @@ pub fn stream_engine_config(variant: Variant, particles_per_ray: Option<usize>, 
         speed_bound: STREAM_SPEED_BOUND_M_S / fps.max(1.0) as f32,
         ..defaults
     }
+}
+
+/// Width of an adult's palm, metres (the reference's palm centre sits in it).
+pub const PALM_WIDTH_M: f64 = 0.085;
+/// Least width of a palm in pixels of the level the engine estimates on. The working level
+/// is the coarsest that keeps it: coarser levels cost a quarter as much per step but blur
+/// fingers (a quarter of the palm) into the background. Measured: on the shared real
+/// session's 1280x720 webcams (palms about 57 px wide at full resolution), 28 px palms
+/// tracked the right hand within 5 cm in 74 % of frames and 14 px palms in 19 %; the
+/// synthetic presets (palms 16 px on their working level) stay on target.
+pub const MIN_PALM_PX: f64 = 16.0;
+/// Coarsest working level (an eighth of the resolution).
+pub const MAX_WORKING_LEVEL: usize = 3;
+/// Distance to the signer assumed when the cameras' axes do not meet in front of the
+/// reference camera (parallel cameras), metres: a seated signer before a desk rig.
+pub const DEFAULT_SIGNER_DISTANCE_M: f64 = 1.5;
+
+/// Where the rig's cameras look: the point nearest to every optical axis (least squares),
+/// when it lies in front of the reference camera within [`STREAM_DEPTH_RANGE_M`]; its
+/// distance from the reference camera, metres. `None` for a single camera or (nearly)
+/// parallel axes.
+pub fn rig_convergence_distance(cameras: &[Camera], reference: usize) -> Option<f64> {
+    use nalgebra::Matrix3;
+    if cameras.len() < 2 {
+        return None;
+    }
+    let (mut a, mut b) = (Matrix3::zeros(), Vector3::zeros());
+    for cam in cameras {
+        let axis: Vector3<f64> = cam.rotation.inverse() * Vector3::z();
+        let projector = Matrix3::identity() - axis * axis.transpose();
+        a += projector;
+        b += projector * cam.centre().coords;
+    }
+    // Parallel axes leave a direction unconstrained: a near-singular normal matrix.
+    let eigen = a.symmetric_eigen();
+    if eigen.eigenvalues.min() < 0.05 * cameras.len() as f64 {
+        return None;
+    }
+    let point = a.try_inverse()? * b;
+    let cam = cameras.get(reference)?;
+    let depth = (cam.rotation * point + cam.translation).z;
+    let (near, far) = STREAM_DEPTH_RANGE_M;
+    (depth >= f64::from(near) && depth <= f64::from(far)).then(|| (point - cam.centre().coords).norm())
+}
+
+/// Expected width of a palm in the reference camera's full-resolution image, pixels: its
+/// focal length times [`PALM_WIDTH_M`] over the distance to where the rig looks
+/// ([`rig_convergence_distance`], else [`DEFAULT_SIGNER_DISTANCE_M`]).
+pub fn expected_palm_px(cameras: &[Camera], reference: usize) -> f64 {
+    let Some(cam) = cameras.get(reference) else { return 0.0 };
+    let focal = 0.5 * (cam.matrix[(0, 0)] + cam.matrix[(1, 1)]);
+    let distance = rig_convergence_distance(cameras, reference).unwrap_or(DEFAULT_SIGNER_DISTANCE_M);
+    focal * PALM_WIDTH_M / distance
+}
+
+/// The working level for palms `palm_px` wide at full resolution: the coarsest level
+/// (each halves the resolution) on which they are still [`MIN_PALM_PX`] wide, at most
+/// [`MAX_WORKING_LEVEL`]. So a 1920x1080 rig costs what a 960x540 one does, and a
+/// 640x480 one with the same field of view is estimated at full resolution.
+pub fn working_level(palm_px: f64) -> usize {
+    let mut level = 0;
+    while level < MAX_WORKING_LEVEL && palm_px / f64::from(1u32 << (level + 1)) >= MIN_PALM_PX {
+        level += 1;
+    }
+    level
+}
+
+/// One line for the log: the level the engine estimates on, its ray grid and why.
+pub fn working_level_summary(config: &EngineConfig, cameras: &[Camera], reference: usize) -> String {
+    let Some(cam) = cameras.get(reference) else { return String::from("no reference camera") };
+    let scale = 1u32 << config.finest_level;
+    let distance = rig_convergence_distance(cameras, reference)
+        .map_or(format!("{DEFAULT_SIGNER_DISTANCE_M} m (assumed)"), |d| format!("{d:.2} m (where the cameras look)"));
+    format!(
+        "working level {} ({}x{} rays on `{}`): palms about {:.0} px wide at full resolution, signer at {distance}",
+        config.finest_level,
+        cam.width.div_ceil(scale),
+        cam.height.div_ceil(scale),
+        cam.name,
+        expected_palm_px(cameras, reference),
+    )
 }
 
 /// Frames between two reports of the cameras' skin shares when they change little: about
@@ -736,5 +827,79 @@ mod tests {
         assert_eq!(round.status(2), FaceStatus::None, "camera 2's own detection was rejected");
         assert_eq!(round.status(9), FaceStatus::None, "an unknown camera has no face");
         assert_eq!(FaceRound::default().status(0), FaceStatus::None);
+    }
+
+    /// Cameras `radius` m from the origin at these angles about the vertical (Y up),
+    /// looking at it, `width` x `height` pixels with `fov_deg` across the width.
+    fn arc(radius: f64, angles_deg: &[f64], width: u32, height: u32, fov_deg: f64) -> Vec<Camera> {
+        use nalgebra::{Matrix3, Rotation3};
+        let f = 0.5 * f64::from(width) / (0.5 * fov_deg.to_radians()).tan();
+        let k = Matrix3::new(f, 0.0, f64::from(width) / 2.0, 0.0, f, f64::from(height) / 2.0, 0.0, 0.0, 1.0);
+        angles_deg
+            .iter()
+            .enumerate()
+            .map(|(i, a)| {
+                let position = Vector3::new(radius * a.to_radians().sin(), 0.1, radius * a.to_radians().cos());
+                let z = (-position).normalize();
+                let x = z.cross(&-Vector3::y()).normalize();
+                let y = z.cross(&x);
+                let r = Rotation3::from_matrix_unchecked(Matrix3::from_rows(&[
+                    x.transpose(),
+                    y.transpose(),
+                    z.transpose(),
+                ]));
+                let t = -(r * position);
+                Camera::new(format!("cam{i}"), width, height, k, handflow_protocol::Distortion::default(), r, t)
+                    .expect("valid camera")
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_working_level_keeps_a_palm_sixteen_pixels_wide() {
+        assert_eq!(working_level(10.0), 0);
+        assert_eq!(working_level(31.9), 0);
+        assert_eq!(working_level(32.0), 1);
+        assert_eq!(working_level(57.0), 1, "the shared real session's webcams");
+        assert_eq!(working_level(64.0), 2);
+        assert_eq!(working_level(5000.0), MAX_WORKING_LEVEL);
+        assert_eq!(working_level(f64::NAN), 0);
+    }
+
+    #[test]
+    fn the_working_level_follows_image_size_and_distance() {
+        let level = |cams: &[Camera]| working_level(expected_palm_px(cams, 1));
+        // Where three cameras on a 1.8 m arc look: the signer at the arc's centre.
+        let cams = arc(1.8, &[-35.0, 0.0, 35.0], 640, 480, 50.0);
+        let d = rig_convergence_distance(&cams, 1).expect("axes meet");
+        assert!((d - 1.8).abs() < 0.01, "{d}");
+        // 640x480 at 50 degrees: a palm 32 px wide, estimated at half resolution.
+        assert!((expected_palm_px(&cams, 1) - 32.4).abs() < 0.2);
+        assert_eq!(level(&cams), 1);
+        // The same rig at 1920x1080 costs what 480x270 would; a portrait 1080x1920 camera
+        // sees the same palm as a 1080-wide one; 320x240 keeps every pixel.
+        assert_eq!(level(&arc(1.8, &[-35.0, 0.0, 35.0], 1920, 1080, 50.0)), 2);
+        assert_eq!(level(&arc(1.8, &[-35.0, 0.0, 35.0], 1080, 1920, 50.0)), 1);
+        assert_eq!(level(&arc(1.8, &[-35.0, 0.0, 35.0], 320, 240, 50.0)), 0);
+        // Nearer cameras see bigger hands.
+        assert_eq!(level(&arc(0.9, &[-35.0, 0.0, 35.0], 640, 480, 50.0)), 2);
+        // Parallel cameras do not say where the signer is: the default distance.
+        let mut parallel = arc(1.8, &[0.0, 0.0], 640, 480, 50.0);
+        parallel[1].translation.x += 0.3;
+        assert_eq!(rig_convergence_distance(&parallel, 1), None);
+        let expected = parallel[1].matrix[(0, 0)] * PALM_WIDTH_M / DEFAULT_SIGNER_DISTANCE_M;
+        assert!((expected_palm_px(&parallel, 1) - expected).abs() < 1e-9);
+        assert_eq!(rig_convergence_distance(&cams[..1], 0), None, "one camera");
+    }
+
+    #[test]
+    fn the_stream_configuration_estimates_on_the_working_level() {
+        let cams = arc(1.8, &[-35.0, 0.0, 35.0], 1920, 1080, 50.0);
+        let config = stream_engine_config(Variant::Handflow, None, 30.0, &cams, 1);
+        assert_eq!((config.finest_level, config.pyramid_levels), (2, 4));
+        config.validate().expect("valid");
+        let config = stream_engine_config(Variant::Handflow, None, 30.0, &arc(1.8, &[0.0, 30.0], 320, 240, 50.0), 0);
+        assert_eq!((config.finest_level, config.pyramid_levels), (0, 2));
+        config.validate().expect("valid");
     }
 }
