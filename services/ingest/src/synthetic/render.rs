@@ -150,7 +150,8 @@ impl Renderer {
     /// [`Renderer::view_len`] bytes (a camera mounted a quarter turn has width and height
     /// swapped). With motion blur the colours average the shutter's sub-frame renders; the
     /// masks are the middle one's, at the frame's time, as the truth is.
-    pub fn render_into(&self, frame: u32, rgb: &mut [u8], masks: &mut [u8]) {
+    pub fn render_into(&self, frame: u32, rgb_all: &mut [u8], masks: &mut [u8]) {
+        let rgb = &mut *rgb_all;
         let scenes: Vec<Vec<Object>> = self.exposure_times(frame).into_iter().map(|t| self.objects_at(t)).collect();
         let middle = scenes.len() / 2;
         let light = normalise([0.3, 0.6, 1.0]);
@@ -199,6 +200,36 @@ impl Renderer {
                 }
             }
         });
+        if self.spec.jpeg_quality > 0 {
+            let mut offset = 0;
+            for camera in &self.rig.cameras {
+                let len = camera.width as usize * camera.height as usize * 3;
+                Self::through_jpeg(
+                    &mut rgb_all[offset..offset + len],
+                    camera.width,
+                    camera.height,
+                    self.spec.jpeg_quality,
+                );
+                offset += len;
+            }
+        }
+    }
+
+    /// Replaces an RGB8 view by what a JPEG of it at `quality` decodes to. Encoding an image
+    /// this renderer made cannot fail (the sizes match the buffer); should it, the view stays
+    /// lossless rather than the frame being lost.
+    fn through_jpeg(view: &mut [u8], width: u32, height: u32, quality: u8) {
+        let mut bytes = Vec::new();
+        let encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, quality);
+        if image::ImageEncoder::write_image(encoder, view, width, height, image::ExtendedColorType::Rgb8).is_err() {
+            return;
+        }
+        if let Ok(decoded) = image::load_from_memory_with_format(&bytes, image::ImageFormat::Jpeg) {
+            let decoded = decoded.into_rgb8();
+            if decoded.as_raw().len() == view.len() {
+                view.copy_from_slice(decoded.as_raw());
+            }
+        }
     }
 
     /// The times a frame's exposure samples, seconds: the frame's time alone, or with motion
@@ -976,6 +1007,23 @@ mod tests {
                 .count();
             assert!(smeared > 10, "frame {frame}: {smeared} hand pixels smeared");
         }
+    }
+
+    #[test]
+    fn jpeg_compression_degrades_the_colours_a_little_and_keeps_masks_and_truth() {
+        let lossless = small("signer-3cam");
+        let mean_abs_diff = |quality: u8| {
+            let spec = SceneSpec { jpeg_quality: quality, ..lossless.clone() };
+            let (a, b) = (Renderer::new(&lossless).expect("renderer"), Renderer::new(&spec).expect("renderer"));
+            let ((rgb, masks, truth), (jpeg, jpeg_masks, jpeg_truth)) = (render(&a, 2), render(&b, 2));
+            assert_eq!((masks, truth), (jpeg_masks, jpeg_truth), "quality {quality}");
+            assert_eq!(rgb.len(), jpeg.len());
+            rgb.iter().zip(&jpeg).map(|(x, y)| f64::from(x.abs_diff(*y))).sum::<f64>() / rgb.len() as f64
+        };
+        let (good, poor) = (mean_abs_diff(90), mean_abs_diff(20));
+        // Lossy but close: a few grey levels on average, more at a lower quality.
+        assert!(good > 0.2 && good < 4.0, "quality 90: {good}");
+        assert!(poor > good && poor < 12.0, "quality 20: {poor} against {good}");
     }
 
     #[test]

@@ -53,6 +53,12 @@ pub struct SceneSpec {
     /// 15), so that the middle one is at the frame's time; the masks and truth are that one's.
     #[serde(default = "default_blur_samples", skip_serializing_if = "is_default_blur_samples")]
     pub motion_blur_samples: u32,
+    /// Lossy compression, as an MJPEG webcam (most USB webcams at 720p and above) delivers
+    /// frames: every view is encoded as a JPEG at this quality (1 to 100) and decoded back
+    /// before it is written or sent, so block edges, ringing and coarser colour reach the
+    /// engine. 0, the default, is lossless.
+    #[serde(default, skip_serializing_if = "is_zero_u8")]
+    pub jpeg_quality: u8,
     /// Motion of head and hands.
     pub motion: Motion,
 }
@@ -63,6 +69,10 @@ pub const FOREARM_M: f64 = 0.25;
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
+fn is_zero_u8(v: &u8) -> bool {
+    *v == 0
+}
+
 fn is_false(v: &bool) -> bool {
     !*v
 }
@@ -190,6 +200,7 @@ impl SceneSpec {
             clutter: false,
             motion_blur: 0.0,
             motion_blur_samples: default_blur_samples(),
+            jpeg_quality: 0,
             motion: Motion::Preset { name: motion.to_string() },
         };
         let signer = || base(arc(1.8, &[-35.0, 0.0, 35.0]), "signing");
@@ -260,6 +271,9 @@ impl SceneSpec {
                 "`motion_blur` (the open shutter's share of the frame interval) must be between 0 and 1, got {}",
                 self.motion_blur
             ));
+        }
+        if self.jpeg_quality > 100 {
+            return Err(format!("`jpeg_quality` must be 0 (lossless) or 1 to 100, got {}", self.jpeg_quality));
         }
         if self.motion_blur_samples.is_multiple_of(2) || !(3..=15).contains(&self.motion_blur_samples) {
             return Err(format!(
@@ -419,13 +433,14 @@ mod tests {
         assert!(parsed >= 5, "{parsed} scene files in {}", dir.display());
         // A scene written without the options reads as before; one with them round-trips.
         let plain = toml::to_string(&SceneSpec::preset("signer-3cam").expect("preset")).expect("toml");
-        for key in ["bare_forearm_m", "clutter", "motion_blur", "mount_quarter_turns"] {
+        for key in ["bare_forearm_m", "clutter", "motion_blur", "mount_quarter_turns", "jpeg_quality"] {
             assert!(!plain.contains(key), "`{key}` written at its default:\n{plain}");
         }
         let mut spec = SceneSpec::preset("cluttered-room").expect("preset");
         spec.bare_forearm_m = 0.2;
         spec.motion_blur = 0.5;
         spec.motion_blur_samples = 7;
+        spec.jpeg_quality = 40;
         spec.cameras.mount_quarter_turns = vec![0, 1, 3];
         let text = toml::to_string(&spec).expect("toml");
         assert_eq!(toml::from_str::<SceneSpec>(&text).expect("parses"), spec);
@@ -500,6 +515,7 @@ mod tests {
         bad(&|s| s.bare_forearm_m = f64::NAN, "bare_forearm_m");
         bad(&|s| s.motion_blur = 1.5, "motion_blur");
         bad(&|s| s.motion_blur_samples = 4, "motion_blur_samples");
+        bad(&|s| s.jpeg_quality = 101, "jpeg_quality");
         bad(&|s| s.cameras.mount_quarter_turns = vec![0, 1], "cameras.mount_quarter_turns");
         bad(&|s| s.cameras.mount_quarter_turns = vec![0, 4, 0], "cameras.mount_quarter_turns");
     }
