@@ -82,6 +82,8 @@ pub struct ClusterStage {
     tracker: Tracker,
     em: EmConfig,
     points: Vec<WeightedPoint>,
+    /// The frame's points within reach of the head's seed (a buffer kept between frames).
+    near_points: Vec<WeightedPoint>,
     eye: Point3<f64>,
     up: Vector3<f64>,
     signer_left: Vector3<f64>,
@@ -143,6 +145,7 @@ impl ClusterStage {
             tracker: Tracker::new(TrackerConfig::default(), up, signer_left),
             em: EmConfig::default(),
             points: Vec::new(),
+            near_points: Vec::new(),
             eye: reference.centre(),
             up,
             signer_left,
@@ -201,22 +204,44 @@ impl ClusterStage {
                 init[0] = (a.face, Vector3::zeros());
             }
         }
-        // A lost hand's seed goes where a hand on its side would be now, not where it was lost.
+        // A lost hand's seed goes where a hand on its side would be now, not where it was
+        // lost; a hand coasting on its prediction gets that seed besides its own (the
+        // prediction may be right, a hand passing behind the other, or may fly off with a
+        // wrong velocity while the hand is in plain view).
+        let mut returning = Vec::new();
         if let (Some(init), Some(tracks)) = (initial.as_mut(), self.tracker.tracks()) {
             for k in 1..3 {
-                if tracks[k].state != State::Lost {
+                if tracks[k].state == State::Tracked {
                     continue;
                 }
                 let side = if k == 1 { self.signer_left } else { -self.signer_left };
                 let reach = self.tracker.config().reach_m;
                 if let Some(seed) = side_extremity(&self.points, init[0].0, reach, self.up, side) {
-                    init[k] = seed;
+                    if tracks[k].state == State::Lost {
+                        init[k] = seed;
+                    } else {
+                        returning.push(seed);
+                    }
                 }
             }
         }
         let mut fit = initial.and_then(|init| {
             let mut seeds = init.to_vec();
-            farthest_point_seeds(&self.points, &mut seeds, CLUTTER_COMPONENTS, CLUTTER_SEED_DISTANCE_M);
+            for seed in returning {
+                if seeds.iter().all(|(s, _)| (s - seed.0).norm() > CLUTTER_SEED_DISTANCE_M) {
+                    seeds.push(seed);
+                }
+            }
+            // The person's unexplained skin (a neck, a hand whose seed flew off with a wrong
+            // velocity) gets a spare component before skin-like clutter across the room does.
+            let reach = self.tracker.config().reach_m;
+            let head = seeds[0].0;
+            self.near_points.clear();
+            self.near_points.extend(self.points.iter().filter(|p| (p.position - head).norm() <= reach).copied());
+            let before = seeds.len();
+            farthest_point_seeds(&self.near_points, &mut seeds, 1, CLUTTER_SEED_DISTANCE_M);
+            let left = CLUTTER_COMPONENTS - (seeds.len() - before);
+            farthest_point_seeds(&self.points, &mut seeds, left, CLUTTER_SEED_DISTANCE_M);
             fit_mixture(&self.points, &seeds, &self.em)
         });
         let raw = fit.clone();
@@ -444,6 +469,51 @@ mod tests {
         assert_eq!(stage.last_point_count(), 600);
         assert!(stage.last_fit().is_some_and(|f| f.components.len() >= 3));
         assert!(stage.assigned().iter().all(Option::is_some));
+    }
+
+    #[test]
+    fn a_hand_whose_prediction_flew_off_is_found_again_before_it_is_lost() {
+        let blob = |x: f32, y: f32, n: usize, vx: f32| {
+            (0..n).map(move |i| ScenePoint {
+                position: [x + (i % 10) as f32 * 0.004, y + (i / 10) as f32 * 0.004, 0.0],
+                velocity: [vx, 0.0, 0.0],
+                weight: 1.0,
+                skin: 1.0,
+            })
+        };
+        let clutter = || blob(3.0, 0.5, 30, 0.0).chain(blob(-2.5, 2.5, 30, 0.0));
+        let mut stage = ClusterStage::new(&reference(0.0), Vector3::y(), false).with_hand_localisation(false);
+        let fps = 30.0;
+        let body = || blob(0.0, 1.6, 200, 0.0).chain(blob(-0.3, 1.1, 200, 0.0)).chain(clutter());
+        // The flow gives the left hand a wrong sideways velocity of 3 m/s (0.1 m per frame)
+        // for a few frames, then the hand is hidden for a fifth of a second: its track
+        // coasts half a metre away from the body.
+        let mut t = 0.0;
+        for f in 0..4 {
+            // Without a face, the highest cluster starts the head: the clutter comes later.
+            let points: Vec<ScenePoint> =
+                body().filter(|p| f > 0 || p.position[0].abs() < 1.0).chain(blob(0.3, 1.1, 200, 0.1)).collect();
+            stage.update(t, fps, 0.0, &points, None);
+            t += 1.0 / fps;
+        }
+        for _ in 0..6 {
+            let points: Vec<ScenePoint> = body().collect();
+            stage.update(t, fps, 0.0, &points, None);
+            t += 1.0 / fps;
+        }
+        // Back by the chin, still before the track would be lost.
+        let points: Vec<ScenePoint> = body().chain(blob(0.2, 1.42, 200, 0.0)).collect();
+        let mut back = stage.update(t, fps, 0.0, &points, None);
+        for _ in 0..2 {
+            t += 1.0 / fps;
+            back = stage.update(t, fps, 0.0, &points, None);
+        }
+        assert_eq!(back[1].state, State::Tracked, "{back:?}");
+        assert!(
+            (back[1].position - Vector3::new(0.218, 1.438, 0.0)).norm() < 0.03,
+            "left hand at {:?}",
+            back[1].position
+        );
     }
 
     #[test]
