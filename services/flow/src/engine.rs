@@ -1241,13 +1241,21 @@ impl IterationContext<'_> {
         let elite_known = self.elite_cost_valid && self.best_prev[ray].is_valid() && cands[0].cost.is_finite();
         let mut evaluations = 0u64;
         for k in 0..m {
-            let p = &mut cands[k];
+            // A neighbour's best is often the very hypothesis this ray already holds (a good
+            // one spreads by propagation): the same depth and velocity on the same ray cost
+            // the same, so it is evaluated once and its cost copied, bit for bit.
             if !(k == 0 && elite_known) {
-                let pos = point_on_ray(self.origin, dir, p.depth);
-                p.cost =
-                    robust_window_cost(self.images, &reference, pos, p.velocity, self.config.truncation, self.keep);
-                evaluations += 1;
+                cands[k].cost = match (0..k).find(|&j| same_hypothesis(&cands[j], &cands[k])) {
+                    Some(j) => cands[j].cost,
+                    None => {
+                        evaluations += 1;
+                        let p = &cands[k];
+                        let pos = point_on_ray(self.origin, dir, p.depth);
+                        robust_window_cost(self.images, &reference, pos, p.velocity, self.config.truncation, self.keep)
+                    }
+                };
             }
+            let p = &cands[k];
             let v = p.velocity;
             let along = v[0] * sight[0] + v[1] * sight[1] + v[2] * sight[2];
             let across_sq = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2] - along * along).max(0.0);
@@ -1292,6 +1300,13 @@ impl IterationContext<'_> {
         *count = n as u8;
         evaluations
     }
+}
+
+/// Whether two candidates of one ray are the same hypothesis (bitwise equal depth and
+/// velocity), so that they have the same cost.
+#[inline(always)]
+fn same_hypothesis(a: &Particle, b: &Particle) -> bool {
+    a.depth.to_bits() == b.depth.to_bits() && (0..3).all(|i| a.velocity[i].to_bits() == b.velocity[i].to_bits())
 }
 
 /// The weighted mean of a ray's particles (the note on the prototype found it beats the
@@ -1430,6 +1445,17 @@ mod tests {
         // An occluder in front of the skin in one view: that view's verdict is dropped.
         assert_eq!(log_weight([1.0, -2.0], true), 1.0);
         assert_eq!(log_weight([-1.0, 0.5], true), 0.5);
+    }
+
+    #[test]
+    fn only_bitwise_equal_hypotheses_share_a_cost() {
+        let p = Particle { depth: 1.25, velocity: [0.01, -0.02, 0.0], weight: 0.1, cost: 0.3 };
+        // Weight and cost are not the hypothesis.
+        assert!(same_hypothesis(&p, &Particle { weight: 0.5, cost: 9.0, ..p }));
+        assert!(!same_hypothesis(&p, &Particle { depth: 1.250_001, ..p }));
+        assert!(!same_hypothesis(&p, &Particle { velocity: [0.01, -0.02, 1e-9], ..p }));
+        // Conservative: -0 and +0 are evaluated apart.
+        assert!(!same_hypothesis(&p, &Particle { velocity: [0.01, -0.02, -0.0], ..p }));
     }
 
     #[test]
