@@ -22,7 +22,7 @@ use handflow_cluster::em::EmFit;
 use handflow_cluster::stage::{labelled_clusters, ClusterStage, StartStatus};
 use handflow_cluster::tracks::OBJECTS;
 use handflow_flow::stream::{
-    ray_spread_variance, scene_points, skin_share, FaceCue, FaceRound, FaceStatus, FlowStream, StreamError,
+    ray_spread_variance, scene_points, skin_share, FaceCue, FaceRound, FaceStatus, StreamError,
 };
 use handflow_flow::SceneFlowEngine;
 use handflow_ingest::Recording;
@@ -33,8 +33,7 @@ use image::RgbImage;
 use nalgebra::Point3;
 
 use crate::commands::overlay::{draw_disc, draw_line, draw_tracks, TAIL};
-use crate::commands::track::TrackOptions;
-use crate::recording_engine::recording_engine_config;
+use crate::commands::track::{tracker_stages, TrackOptions};
 
 /// The picture layers written per camera, in montage column order.
 pub const LAYERS: [&str; 5] = ["skin", "faces", "rays", "clusters", "tracks"];
@@ -92,19 +91,7 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
         "frame {frame} is the first frame read: it has no estimate (the engine needs the frame before); choose a \
          later one"
     );
-    let reference = rig.most_frontal_camera();
-    let config = recording_engine_config(
-        options.variant,
-        options.particles_per_ray,
-        fps,
-        &rig.cameras,
-        reference,
-        &options.overrides,
-    )?;
-    let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
-    let mut flow: FlowStream<usize> = FlowStream::new(engine).with_frame_rate(fps);
-    let mut stage = ClusterStage::new(&rig.cameras[reference], up.direction, options.centre_correction)
-        .with_hand_localisation(options.hand_localisation);
+    let (mut flow, mut stage, reference) = tracker_stages::<usize>(options, &rig, up.direction, fps)?;
     let mut tail: VecDeque<TrajectoryRecord> = VecDeque::with_capacity(TAIL);
     let mut points: Vec<ScenePoint> = Vec::new();
     let mut inspected: Option<Vec<u8>> = None;

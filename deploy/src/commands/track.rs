@@ -78,6 +78,31 @@ struct Estimate {
     dropped: u64,
 }
 
+/// The flow stream and the cluster stage `track` and `inspect` run on a recording's `rig`
+/// (world `up`, `fps` frames per second), as `options` configure them, and the reference
+/// camera's index.
+pub(crate) fn tracker_stages<M>(
+    options: &TrackOptions,
+    rig: &handflow_protocol::Rig,
+    up: nalgebra::Vector3<f64>,
+    fps: f64,
+) -> Result<(FlowStream<M>, ClusterStage, usize)> {
+    let reference = rig.most_frontal_camera();
+    let config = recording_engine_config(
+        options.variant,
+        options.particles_per_ray,
+        fps,
+        &rig.cameras,
+        reference,
+        &options.overrides,
+    )?;
+    let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
+    let flow = FlowStream::new(engine).with_frame_rate(fps);
+    let stage = ClusterStage::new(&rig.cameras[reference], up, options.centre_correction)
+        .with_hand_localisation(options.hand_localisation);
+    Ok((flow, stage, reference))
+}
+
 /// Runs the tracker over a recording, handing each frame's record to `on_record` with the
 /// number of frames done and to do.
 pub fn track_recording(
@@ -92,21 +117,9 @@ pub fn track_recording(
     let up = rig.world_up();
     tracing::info!("world up {:?} ({})", up.direction.as_slice(), up.source);
     let fps = rec.frame_rate();
-    let reference = rig.most_frontal_camera();
-    let config = recording_engine_config(
-        options.variant,
-        options.particles_per_ray,
-        fps,
-        &rig.cameras,
-        reference,
-        &options.overrides,
-    )?;
-    let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let frames = rec.len();
     anyhow::ensure!(frames >= 2, "recording `{}` needs at least 2 frames, has {frames}", dir.display());
-    let mut flow = FlowStream::new(engine).with_frame_rate(fps);
-    let mut stage = ClusterStage::new(&rig.cameras[reference], up.direction, options.centre_correction)
-        .with_hand_localisation(options.hand_localisation);
+    let (mut flow, mut stage, _) = tracker_stages(options, &rig, up.direction, fps)?;
     let mut written = 0;
     let mut skipped: u64 = 0;
     // Every frame but the first gets an estimate (the last through the flush), less the
