@@ -106,6 +106,12 @@ pub struct EngineConfig {
     /// of the half-resolution grid, a quarter as many: enough points for trajectories at a
     /// quarter of the work. Needs `per_level_rays`.
     pub finest_level: usize,
+    /// Rays on the finest level are `2^ray_subsampling` pixels apart (default 0, one per
+    /// pixel). At 1 the finest level's images are matched from the rays of the next coarser
+    /// grid: a quarter of the rays keep the finer images' detail, which is what separates a
+    /// hand from what is behind it, while the trajectories need far fewer points than
+    /// pixels. Needs `per_level_rays`; `finest_level + ray_subsampling` must be a level.
+    pub ray_subsampling: usize,
     /// Seed of every random draw (default 0). Same seed, same result, any thread count.
     pub seed: u64,
     /// Camera-frame depth range of the reference camera, world units (near, far).
@@ -205,6 +211,13 @@ pub struct EngineConfig {
     /// `skin` coverage: a reference-view pixel is skin when its clamped log10 skin ratio
     /// exceeds this (default 0: the skin model is the likelier).
     pub skin_threshold: f32,
+    /// `skin` coverage: a ray of the finest ray grid holds particles only when every
+    /// full-resolution pixel it covers is skin (default true); false: any one suffices, as
+    /// on the coarser grids, which search. A ray straddling a silhouette matches a window
+    /// that is part background: its depth mixes the hand's with the wall's, and on a half-
+    /// resolution grid such rays are a third of a small hand's. On a full-resolution grid a
+    /// ray covers one pixel and this changes nothing.
+    pub skin_whole_footprint: bool,
     /// Share of each ray's prior particles replaced by fresh random ones at a new frame when
     /// the previous posterior is carried over (default 0.2).
     pub fresh_fraction: f32,
@@ -227,6 +240,7 @@ impl Default for EngineConfig {
             cold_start_passes: 0,
             per_level_rays: true,
             finest_level: 0,
+            ray_subsampling: 0,
             seed: 0,
             depth_range: (0.5, 10.0),
             speed_bound: 0.1,
@@ -254,6 +268,7 @@ impl Default for EngineConfig {
             skin_weight: 1.0,
             skin_drop_worst_view: true,
             skin_threshold: 0.0,
+            skin_whole_footprint: true,
         }
     }
 }
@@ -305,6 +320,15 @@ impl EngineConfig {
             return Err(format!(
                 "`finest_level` must be below `pyramid_levels` ({}) and 0 unless `per_level_rays`, got {}",
                 self.pyramid_levels, self.finest_level
+            ));
+        }
+        if self.ray_subsampling > 0
+            && (!self.per_level_rays || self.finest_level + self.ray_subsampling >= self.pyramid_levels)
+        {
+            return Err(format!(
+                "`ray_subsampling` needs `per_level_rays` and `finest_level + ray_subsampling` below \
+                 `pyramid_levels` ({}), got {} + {}",
+                self.pyramid_levels, self.finest_level, self.ray_subsampling
             ));
         }
         if self.noise_loops == 0 {

@@ -54,8 +54,8 @@ pub enum FlowError {
     },
 }
 
-/// The dense per-ray output of the reference view (row-major), on the grid of the finest
-/// estimated pyramid level (`finest_level`; full resolution by default).
+/// The dense per-ray output of the reference view (row-major), on the finest ray grid: that of
+/// pyramid level `finest_level + ray_subsampling` (full resolution by default).
 #[derive(Clone, Debug, Default)]
 pub struct DenseField {
     /// Reference image width.
@@ -137,7 +137,7 @@ pub struct SceneFlowEngine {
     /// of that ring slot's frame (`skin` coverage).
     skin_maps: [Vec<Vec<f32>>; 3],
     /// `active[grid level]`: rays that may hold particles in the frame being estimated
-    /// (`skin` coverage): a coarse ray is active when any pixel it covers is skin.
+    /// (`skin` coverage): see `skin_whole_footprint`.
     active: Vec<Vec<bool>>,
 }
 
@@ -201,7 +201,8 @@ impl SceneFlowEngine {
         };
         let rays = width * height;
         let n = config.particles_per_ray;
-        let (field_width, field_height) = (grids[config.finest_level].width, grids[config.finest_level].height);
+        let ray_level = finest_ray_level(&config);
+        let (field_width, field_height) = (grids[ray_level].width, grids[ray_level].height);
         let field_rays = field_width * field_height;
         let skin = config.coverage == Coverage::Skin;
         let skin_models = if skin { vec![SkinModel::generic(0.0); cameras.len()] } else { Vec::new() };
@@ -323,7 +324,7 @@ impl SceneFlowEngine {
 
     /// World position of a particle of ray `ray` of the finest estimated grid.
     pub fn particle_position(&self, ray: usize, particle: &Particle) -> [f32; 3] {
-        point_on_ray(self.origin, self.grids[self.config.finest_level].dirs[ray], particle.depth)
+        point_on_ray(self.origin, self.grids[finest_ray_level(&self.config)].dirs[ray], particle.depth)
     }
 
     /// Forgets every frame and the posterior (a new, unrelated stream follows).
@@ -435,8 +436,8 @@ impl SceneFlowEngine {
                 evaluations += self.estimate_pass(window, frame, Prior::Held, pass);
             }
         }
-        let finest = self.config.finest_level;
-        let rays = self.grids[finest].width * self.grids[finest].height;
+        let ray_level = finest_ray_level(&self.config);
+        let rays = self.grids[ray_level].width * self.grids[ray_level].height;
         let occupied_rays = self.counts[..rays].iter().filter(|&&c| c > 0).count();
         self.stats = FrameStats {
             frame,
@@ -475,12 +476,13 @@ impl SceneFlowEngine {
         let finest = self.config.finest_level;
         let per_level_grid = self.config.per_level_rays;
         let top = levels - 1;
-        let top_grid = if per_level_grid { top } else { 0 };
-        self.seed_top_level(top_grid, use_prior, frame_key);
+        let ray_level = finest_ray_level(&self.config);
+        let grid_of = |level: usize| if per_level_grid { level.max(ray_level) } else { 0 };
+        self.seed_top_level(grid_of(top), use_prior, frame_key);
         for level in (finest..levels).rev() {
-            let grid = if per_level_grid { level } else { 0 };
-            if per_level_grid && level != top {
-                self.upsample_particles(level + 1, level);
+            let grid = grid_of(level);
+            if level != top && grid != grid_of(level + 1) {
+                self.upsample_particles(grid_of(level + 1), grid);
             }
             let extra = match (level == top, use_prior) {
                 (false, _) => 0,
@@ -503,7 +505,8 @@ impl SceneFlowEngine {
     }
 
     /// Marks the rays of every grid level that cover a skin pixel of the reference view in
-    /// ring slot `slot`.
+    /// ring slot `slot`; with `skin_whole_footprint`, the finest ray grid's only where every
+    /// pixel they cover is skin.
     fn update_active(&mut self, slot: usize) {
         let threshold = self.config.skin_threshold;
         let map = &self.skin_maps[slot][self.reference];
@@ -519,6 +522,15 @@ impl SceneFlowEngine {
                 *a = (y0..(y0 + 2).min(fh)).any(|y| (x0..(x0 + 2).min(fw)).any(|x| finer[y * fw + x]));
             });
         }
+        let level = finest_ray_level(&self.config);
+        if self.config.skin_whole_footprint && level > 0 {
+            let (w, h) = (self.grids[0].width, self.grids[0].height);
+            let (cw, s) = (self.grids[level].width, 1usize << level);
+            self.active[level].par_iter_mut().enumerate().for_each(|(ray, a)| {
+                let (x0, y0) = ((ray % cw) * s, (ray / cw) * s);
+                *a = (y0..(y0 + s).min(h)).all(|y| (x0..(x0 + s).min(w)).all(|x| map[y * w + x] > threshold));
+            });
+        }
     }
 
     /// The prior of a new frame: the previous posterior moved by its own velocity
@@ -530,7 +542,7 @@ impl SceneFlowEngine {
     /// for another pass over the same frame.
     fn carry_posterior_forward(&mut self, frame: u64, step: f32) {
         let n = self.config.particles_per_ray;
-        let finest = self.config.finest_level;
+        let finest = finest_ray_level(&self.config);
         let grid = &self.grids[finest];
         let (w, h) = (grid.width, grid.height);
         let reference = &self.projections[finest][self.reference];
@@ -613,7 +625,7 @@ impl SceneFlowEngine {
         let n = self.config.particles_per_ray;
         // Neighbour bests from an earlier frame or level must not leak into this one.
         self.best.iter_mut().for_each(|b| *b = Particle::EMPTY);
-        let finest = self.config.finest_level;
+        let finest = finest_ray_level(&self.config);
         if use_prior && grid_level == finest {
             return; // `particles` already holds the prior on the finest grid.
         }
@@ -698,7 +710,7 @@ impl SceneFlowEngine {
         // centre held particles in the prior, so empty rays stay empty through the pyramid.
         let occupancy = (self.config.coverage == Coverage::Sparse && self.prior_valid).then_some(&self.prior_counts);
         let active = (self.config.coverage == Coverage::Skin).then(|| self.active[fine].as_slice());
-        let finest = self.config.finest_level;
+        let finest = finest_ray_level(&self.config);
         let (full_w, full_h) = (self.grids[finest].width, self.grids[finest].height);
         let s = 1usize << (fine - finest);
         self.particles[..fw * fh * n]
@@ -773,6 +785,7 @@ impl SceneFlowEngine {
             grid_width: gw,
             grid_height: gh,
             level,
+            grid_level,
             per_level_grid: self.config.per_level_rays,
             sigma_px: sigma_level_px * (1u32 << level) as f32,
             keep: ((n_images - 1) as f32 * self.config.view_keep_fraction).ceil().max(1.0) as usize,
@@ -888,7 +901,7 @@ impl SceneFlowEngine {
     /// Turns the per-ray estimates (refined for `handflow`) into the dense field.
     fn publish_field(&mut self, window: Window) {
         let refine = self.config.variant == Variant::Handflow && self.config.refine_radius > 0;
-        let finest = self.config.finest_level;
+        let finest = finest_ray_level(&self.config);
         let rays = self.grids[finest].width * self.grids[finest].height;
         let source = if refine {
             let guide = self.ring[window.slots[1]][self.reference].level(finest);
@@ -977,6 +990,9 @@ struct IterationContext<'a> {
     grid_width: usize,
     grid_height: usize,
     level: usize,
+    /// Level whose pixel grid the rays of this loop live on: `level`, or coarser on the
+    /// finest levels with `ray_subsampling`.
+    grid_level: usize,
     per_level_grid: bool,
     /// Diffusion in full-resolution pixels.
     sigma_px: f32,
@@ -1170,8 +1186,17 @@ impl IterationContext<'_> {
         let (x, y) = (ray % self.grid_width, ray / self.grid_width);
         let radius = if self.level == 0 { self.config.window_radius } else { self.config.coarse_window_radius };
         // `handflow` rays live on this level's grid; `paper` rays are full-resolution pixels.
-        let (wx, wy) = if self.per_level_grid { (x, y) } else { (x >> self.level, y >> self.level) };
-        let reference = ReferenceWindow::gather(self.reference_image, wx, wy, radius, self.config.window_step);
+        let step = self.config.window_step;
+        let reference = if !self.per_level_grid {
+            ReferenceWindow::gather(self.reference_image, x >> self.level, y >> self.level, radius, step)
+        } else if self.grid_level == self.level {
+            ReferenceWindow::gather(self.reference_image, x, y, radius, step)
+        } else {
+            // A coarser grid's pixel centre on this level (the pyramid's centre convention).
+            let s = (1u32 << (self.grid_level - self.level)) as f32;
+            let (u, v) = ((x as f32 + 0.5) * s - 0.5, (y as f32 + 0.5) * s - 0.5);
+            ReferenceWindow::gather_at(self.reference_image, u, v, radius, step)
+        };
         let mut cands = [Particle::EMPTY; MAX_CANDIDATES];
         let mut m = 0;
         // The previous best survives undiffused (elitism): a ray never loses its best
@@ -1375,6 +1400,11 @@ fn refill_from_neighbours(
         }
     }
     0
+}
+
+/// The pyramid level whose pixel grid the finest rays (and the [`DenseField`]) live on.
+fn finest_ray_level(config: &EngineConfig) -> usize {
+    config.finest_level + config.ray_subsampling
 }
 
 /// Rays of the reference camera through the pixel centres of pyramid level `level`.

@@ -115,6 +115,25 @@ impl ReferenceWindow {
         }
         w
     }
+
+    /// The window around the sub-pixel position `(u, v)` of `image`, each sample bilinear,
+    /// clamped at borders: the reference window of a ray whose centre falls between pixels.
+    pub fn gather_at(image: &ColourImage, u: f32, v: f32, radius: usize, step: usize) -> Self {
+        let radius = radius.min(MAX_WINDOW_RADIUS);
+        let mut w = ReferenceWindow { colours: [[0.0; 4]; MAX_WINDOW], len: 0, radius, step };
+        let (wmax, hmax) = ((image.width() - 1) as f32, (image.height() - 1) as f32);
+        let (r, step) = (radius as isize, step as f32);
+        for dy in -r..=r {
+            for dx in -r..=r {
+                let x = (u + dx as f32 * step).clamp(0.0, wmax);
+                let y = (v + dy as f32 * step).clamp(0.0, hmax);
+                // Inside by construction, so `sample` never refuses.
+                w.colours[w.len] = image.sample(x, y).unwrap_or([0.0; 4]);
+                w.len += 1;
+            }
+        }
+        w
+    }
 }
 
 /// handflow's matching cost of a particle, lower is better: for every image other than the

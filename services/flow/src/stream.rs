@@ -190,11 +190,15 @@ pub fn working_level(palm_px: f64) -> usize {
 /// One line for the log: the level the engine estimates on, its ray grid and why.
 pub fn working_level_summary(config: &EngineConfig, cameras: &[Camera], reference: usize) -> String {
     let Some(cam) = cameras.get(reference) else { return String::from("no reference camera") };
-    let scale = 1u32 << config.finest_level;
+    let scale = 1u32 << (config.finest_level + config.ray_subsampling);
     let distance = rig_convergence_distance(cameras, reference)
         .map_or(format!("{DEFAULT_SIGNER_DISTANCE_M} m (assumed)"), |d| format!("{d:.2} m (where the cameras look)"));
+    let rays = match config.ray_subsampling {
+        0 => String::new(),
+        s => format!(", a ray every {} pixels of the level", 1u32 << s),
+    };
     format!(
-        "working level {} ({}x{} rays on `{}`): palms about {:.0} px wide at full resolution, signer at {distance}",
+        "working level {} ({}x{} rays{rays} on `{}`): palms about {:.0} px wide at full resolution, signer at {distance}",
         config.finest_level,
         cam.width.div_ceil(scale),
         cam.height.div_ceil(scale),

@@ -418,3 +418,73 @@ fn skin_coverage_estimates_only_the_skin_and_gets_it_right() {
     assert!(engine.skin_at(0, x, h / 2).is_some_and(|s| s > 0.0));
     assert!(engine.skin_at(0, w, 0).is_none(), "outside the image");
 }
+
+/// Estimates frame 2 of the skin disc scene with `config` (forwards/backwards, skin
+/// coverage) and returns the engine.
+fn skin_disc_engine(config: EngineConfig) -> (SceneFlowEngine, Vec<Camera>) {
+    let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
+    let config = EngineConfig {
+        temporal: Temporal::ForwardsBackwards,
+        coverage: handflow_flow::Coverage::Skin,
+        depth_range: (2.0, 10.0),
+        speed_bound: 0.2,
+        ..config
+    };
+    let mut engine = SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine");
+    for k in 0..4 {
+        let views: Vec<Vec<u8>> = cameras.iter().map(|c| render_skin(c, f64::from(k))).collect();
+        let refs: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
+        engine.push_frame(&refs).expect("push");
+    }
+    (engine, cameras)
+}
+
+/// Estimated rays of the engine's field, and how many of them cover a pixel that is not skin.
+fn rays_on_skin(engine: &SceneFlowEngine) -> (usize, usize) {
+    let field = engine.field();
+    let scale = WIDTH as usize / field.width;
+    let (mut estimated, mut straddling) = (0, 0);
+    for ray in (0..field.width * field.height).filter(|&r| field.confidence[r] > 0.0) {
+        estimated += 1;
+        let (x0, y0) = ((ray % field.width) * scale, (ray / field.width) * scale);
+        let all_skin =
+            (y0..y0 + scale).all(|y| (x0..x0 + scale).all(|x| engine.skin_at(0, x, y).is_some_and(|s| s > 0.0)));
+        straddling += usize::from(!all_skin);
+    }
+    (estimated, straddling)
+}
+
+#[test]
+fn the_finest_grid_holds_only_rays_wholly_on_skin() {
+    let half = EngineConfig { finest_level: 1, ..EngineConfig::default() };
+    let (whole, _) = skin_disc_engine(EngineConfig { skin_whole_footprint: true, ..half.clone() });
+    let (any, _) = skin_disc_engine(EngineConfig { skin_whole_footprint: false, ..half });
+    let (whole_rays, whole_straddling) = rays_on_skin(&whole);
+    let (any_rays, any_straddling) = rays_on_skin(&any);
+    eprintln!("whole: {whole_rays} rays, {whole_straddling} straddling; any: {any_rays}, {any_straddling}");
+    assert_eq!(whole_straddling, 0, "every ray of the finest grid lies wholly on skin");
+    assert!(any_straddling > 0, "with any skin pixel, the disc's rim rays straddle it");
+    assert!(whole_rays * 2 > any_rays && whole_rays < any_rays, "only the rim goes: {whole_rays} of {any_rays}");
+}
+
+#[test]
+fn subsampled_rays_match_the_finer_images_and_get_the_motion_right() {
+    let config = EngineConfig { ray_subsampling: 1, ..EngineConfig::default() };
+    let (engine, _) = skin_disc_engine(config);
+    let field = engine.field();
+    assert_eq!((field.width, field.height), (WIDTH as usize / 2, HEIGHT as usize / 2), "rays on the half grid");
+    let mut errors: Vec<(f64, f64)> = (0..field.width * field.height)
+        .filter(|&r| field.confidence[r] > 0.0)
+        .map(|r| {
+            let v = field.velocity[r];
+            let v_err = (f64::from(v[0]) - VELOCITY[0]).abs().max((f64::from(v[1]) - VELOCITY[1]).abs());
+            ((f64::from(field.depth[r]) - PLANE_DEPTH).abs(), v_err)
+        })
+        .collect();
+    assert!(errors.len() > 30, "{} rays estimated", errors.len());
+    errors.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let depth = errors[errors.len() / 2].0;
+    errors.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let velocity = errors[errors.len() / 2].1;
+    assert!(depth < 0.1 && velocity < 0.01, "median depth error {depth}, velocity error {velocity}");
+}
