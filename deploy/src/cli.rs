@@ -135,6 +135,10 @@ struct TrackerArgs {
     /// instead of the hand at the arm's distal end.
     #[arg(long)]
     no_hand_localisation: bool,
+    /// Seed of the engine's random draws: the same seed gives the same trajectories;
+    /// others show how much a figure owes to chance.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
     #[command(flatten)]
     engine: EngineArgs,
 }
@@ -143,6 +147,7 @@ impl TrackerArgs {
     fn options(&self) -> TrackOptions {
         TrackOptions {
             hand_localisation: !self.no_hand_localisation,
+            seed: self.seed,
             ..track_options(&self.engine, &self.part, self.up, !self.no_centre_correction)
         }
     }
@@ -989,6 +994,7 @@ fn track_options(
         up,
         centre_correction,
         hand_localisation: true,
+        seed: 0,
     }
 }
 

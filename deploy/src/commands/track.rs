@@ -37,6 +37,8 @@ pub struct TrackOptions {
     /// Publish each hand at the distal end of its arm's skin (see
     /// [`handflow_cluster::hand::locate_hand`]; default true).
     pub hand_localisation: bool,
+    /// Seed of the engine's random draws (`--seed`; default 0).
+    pub seed: u64,
 }
 
 impl Default for TrackOptions {
@@ -49,6 +51,7 @@ impl Default for TrackOptions {
             up: None,
             centre_correction: true,
             hand_localisation: true,
+            seed: 0,
         }
     }
 }
@@ -88,7 +91,7 @@ pub(crate) fn tracker_stages<M>(
     fps: f64,
 ) -> Result<(FlowStream<M>, ClusterStage, usize)> {
     let reference = rig.most_frontal_camera();
-    let config = recording_engine_config(
+    let mut config = recording_engine_config(
         options.variant,
         options.particles_per_ray,
         fps,
@@ -96,6 +99,7 @@ pub(crate) fn tracker_stages<M>(
         reference,
         &options.overrides,
     )?;
+    config.seed = options.seed;
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let flow = FlowStream::new(engine).with_frame_rate(fps);
     let stage = ClusterStage::new(&rig.cameras[reference], up, options.centre_correction)
