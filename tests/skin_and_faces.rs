@@ -112,3 +112,43 @@ fn a_camera_mounted_sideways_finds_the_face_once_its_frames_are_turned_upright()
         }
     }
 }
+
+#[test]
+fn a_face_of_known_size_is_found_as_well_on_binned_pixels() {
+    use handflow_flow::faces::{detection_bin, Region};
+    // The signer seen by 1280x960 cameras with a narrower lens: faces over 128 px wide.
+    let mut spec = SceneSpec::preset("signer-3cam").expect("preset");
+    (spec.width, spec.height) = (1280, 960);
+    spec.cameras.fov_deg = 34.0;
+    let renderer = Renderer::new(&spec).expect("renderer");
+    let cam = &renderer.rig().cameras[1];
+    let (w, h) = (cam.width, cam.height);
+    let view = renderer.view_len();
+    let mut rgb = vec![0u8; view * 3];
+    let mut masks = vec![0u8; view];
+    let mut detector = FaceDetector::new().expect("model loads");
+    let mut binned_frames = 0;
+    for frame in (0..40).step_by(5) {
+        renderer.render_into(frame, &mut rgb, &mut masks);
+        let image = &rgb[view..2 * view];
+        let full = detector.detect(image, w, h);
+        let Some(face) = full.iter().max_by(|a, b| a.score.total_cmp(&b.score)).copied() else { continue };
+        let bin = detection_bin(face.width);
+        assert!(bin >= 2, "frame {frame}: a {} px face is searched on binned pixels", face.width);
+        let region = Region::around(&face, handflow_flow::skin_adapt::SEARCH_SCALE, w, h);
+        let binned = detector.detect_in_binned(image, w, h, region, 0, bin);
+        let same = binned.iter().find(|f| f.contains(face.x + 0.5 * face.width, face.y + 0.5 * face.height));
+        let Some(same) = same else { panic!("frame {frame}: the {} px face is not found at bin {bin}", face.width) };
+        let shift = ((same.x + 0.5 * same.width - face.x - 0.5 * face.width).powi(2)
+            + (same.y + 0.5 * same.height - face.y - 0.5 * face.height).powi(2))
+        .sqrt();
+        eprintln!(
+            "frame {frame}: {:.0} px face, bin {bin}: {:.0} px, centre {shift:.1} px away",
+            face.width, same.width
+        );
+        assert!(shift < 0.15 * face.width, "frame {frame}: the box centre moved {shift} px");
+        assert!((same.width / face.width - 1.0).abs() < 0.3, "frame {frame}: {} px against {}", same.width, face.width);
+        binned_frames += 1;
+    }
+    assert!(binned_frames >= 6, "the front camera finds the face at full resolution: {binned_frames} of 8");
+}

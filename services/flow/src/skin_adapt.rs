@@ -5,7 +5,7 @@
 use handflow_protocol::Camera;
 
 use crate::face_fusion::{fuse_faces_remembering, FusedFaces, KnownFace};
-use crate::faces::{FaceBox, FaceDetector, Region};
+use crate::faces::{detection_bin, FaceBox, FaceDetector, Region};
 use crate::skin::SkinModel;
 
 /// Adaptation rate per detection (default of [`SkinAdapter::new`]): a face seen a handful
@@ -118,6 +118,14 @@ impl SkinAdapter {
         let full = self.stats.rounds.is_multiple_of(FULL_SEARCH_EVERY);
         let mut found = Vec::with_capacity(self.cameras.len());
         for ((view, cam), last) in views.iter().zip(&self.cameras).zip(&self.last) {
+            // On binned pixels where the face's size is known: the face last seen here, else
+            // the face placed in 3D seen from this camera (a second person twice as far away
+            // may be missed; the signer is the nearest face).
+            let expected_px = match last {
+                Some(face) => face.width.min(face.height),
+                None => self.known.as_ref().map_or(0.0, |k| expected_face_px(cam, k)),
+            };
+            let bin = detection_bin(expected_px);
             let region = match last {
                 Some(face) if !full => Region::around(face, SEARCH_SCALE, cam.width, cam.height),
                 // Once the face is placed in 3D, a view that neither saw it nor was lent it
@@ -129,7 +137,14 @@ impl SkinAdapter {
                 }
                 _ => Region { x: 0, y: 0, width: cam.width, height: cam.height },
             };
-            found.push(self.detector.detect_in_turned(view, cam.width, cam.height, region, cam.mount_quarter_turns));
+            found.push(self.detector.detect_in_binned(
+                view,
+                cam.width,
+                cam.height,
+                region,
+                cam.mount_quarter_turns,
+                bin,
+            ));
         }
         let fused = fuse_faces_remembering(&self.cameras, &found, self.known.as_ref());
         self.last.clone_from(&fused.boxes);
@@ -152,5 +167,18 @@ impl SkinAdapter {
         self.last_fused = fused;
         self.stats.seconds += started.elapsed().as_secs_f64();
         changed
+    }
+}
+
+/// Width in camera `cam`'s pixels of the face `known` (its physical width at its depth
+/// there; 0 when it is not in front of the camera).
+fn expected_face_px(cam: &Camera, known: &KnownFace) -> f32 {
+    let centre = nalgebra::Point3::from(known.centre);
+    let depth = (cam.rotation * centre.coords + cam.translation).z;
+    let focal = 0.5 * (cam.matrix[(0, 0)] + cam.matrix[(1, 1)]);
+    if depth > 1e-6 {
+        (focal * known.width_m / depth) as f32
+    } else {
+        0.0
     }
 }
