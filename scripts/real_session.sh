@@ -2,7 +2,9 @@
 # Tracks a real recording and scores it against its reference: one table row per object
 # (median 3D error, shares within 5 / 10 / 20 cm, identity switches) and the tracking speed.
 # Extra arguments go to `handflow track` (for example `--set field=value` for an ablation).
-# Usage: scripts/real_session.sh [RECORDING_DIR] [TRACK_ARGS...]
+# SEEDS="0 1 2" tracks once per engine seed and adds the mean row per object: on a session of
+# about a hundred frames one seed's shares move by up to ten points, so compare means.
+# Usage: [SEEDS="0 1 2"] scripts/real_session.sh [RECORDING_DIR] [TRACK_ARGS...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 rec=${1:-../shared/data/real/caliscope-hands}
@@ -13,24 +15,41 @@ if [ ! -d "$rec" ]; then
 fi
 bin=${HANDFLOW_BIN:-target/release/handflow}
 [ -x "$bin" ] || cargo build --release -q -p handflow
+seeds=${SEEDS:-0}
 out=$(mktemp -d)
 trap 'rm -rf "$out"' EXIT
-start=$(date +%s.%N)
-"$bin" track --recording "$rec" --out "$out/tracks.jsonl" "$@" 2>"$out/track.log"
-end=$(date +%s.%N)
-"$bin" eval tracks --recording "$rec" --tracks "$out/tracks.jsonl" --reference "$rec/reference.json" --json >"$out/eval.json"
-python3 - "$out/eval.json" "$out/tracks.jsonl" "$start" "$end" <<'PY'
+for seed in $seeds; do
+    start=$(date +%s.%N)
+    "$bin" track --recording "$rec" --out "$out/tracks-$seed.jsonl" --seed "$seed" "$@" 2>"$out/track-$seed.log"
+    end=$(date +%s.%N)
+    "$bin" eval tracks --recording "$rec" --tracks "$out/tracks-$seed.jsonl" --reference "$rec/reference.json" \
+        --json >"$out/eval-$seed.json"
+    frames=$(grep -c . "$out/tracks-$seed.jsonl")
+    echo "$seed $frames $start $end" >>"$out/runs.txt"
+done
+python3 - "$out" <<'PY'
 import json, sys
-report = json.load(open(sys.argv[1]))
-frames = sum(1 for line in open(sys.argv[2]) if line.strip())
-secs = float(sys.argv[4]) - float(sys.argv[3])
-print("| object | median 3D | within 5 cm | within 10 cm | within 20 cm | misses |")
-print("|---|---|---|---|---|---|")
-for name in ("head", "left_hand", "right_hand"):
-    o = report[name]
-    median = "-" if o["median_3d_m"] is None else "%.3f m" % o["median_3d_m"]
-    print("| %s | %s | %.1f %% | %.1f %% | %.1f %% | %d |" % (
-        name, median, 100 * o["within_5cm"], 100 * o["within_10cm"], 100 * o["within_20cm"], o["misses"]))
-print("identity switches: %d" % report["identity_switches"])
-print("%d frames in %.1f s wall (%.2f frame sets/s, including start-up)" % (frames, secs, frames / secs))
+out = sys.argv[1]
+runs = [line.split() for line in open(out + "/runs.txt")]
+names = ("head", "left_hand", "right_hand")
+print("| object | seed | median 3D | within 5 cm | within 10 cm | within 20 cm | misses |")
+print("|---|---|---|---|---|---|---|")
+reports = []
+for seed, frames, start, end in runs:
+    report = json.load(open("%s/eval-%s.json" % (out, seed)))
+    reports.append(report)
+    for name in names:
+        o = report[name]
+        median = "-" if o["median_3d_m"] is None else "%.3f m" % o["median_3d_m"]
+        print("| %s | %s | %s | %.1f %% | %.1f %% | %.1f %% | %d |" % (
+            name, seed, median, 100 * o["within_5cm"], 100 * o["within_10cm"], 100 * o["within_20cm"], o["misses"]))
+if len(reports) > 1:
+    for name in names:
+        mean = lambda key: 100 * sum(r[name][key] for r in reports) / len(reports)
+        print("| %s | mean | | %.1f %% | %.1f %% | %.1f %% | |" % (
+            name, mean("within_5cm"), mean("within_10cm"), mean("within_20cm")))
+for (seed, frames, start, end), report in zip(runs, reports):
+    secs = float(end) - float(start)
+    print("seed %s: identity switches %d; %s frames in %.1f s wall (%.2f frame sets/s, including start-up)" % (
+        seed, report["identity_switches"], frames, secs, int(frames) / secs))
 PY
