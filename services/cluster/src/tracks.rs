@@ -55,6 +55,17 @@ pub enum NotStarted {
         /// The reach, metres.
         reach_m: f64,
     },
+    /// Fewer than two clusters within reach of the head lie clear of it: the others are
+    /// pieces of the head (a face split in two, a neck; see
+    /// [`TrackerConfig::split_distance_m`]), and a hand started on one would stay there.
+    HandsAtTheHead {
+        /// Clusters within reach and clear of the head.
+        clear: usize,
+        /// Clusters closer to the head's than the clearance.
+        pieces: usize,
+        /// The clearance, metres.
+        clearance_m: f64,
+    },
 }
 
 impl NotStarted {
@@ -65,6 +76,7 @@ impl NotStarted {
             NotStarted::NoClusters => "no clusters",
             NotStarted::TooFewClusters { .. } => "too few clusters",
             NotStarted::HandsOutOfReach { .. } => "hands out of reach",
+            NotStarted::HandsAtTheHead { .. } => "hands at the head",
         }
     }
 }
@@ -83,6 +95,11 @@ impl std::fmt::Display for NotStarted {
                     None => Ok(()),
                 }
             }
+            NotStarted::HandsAtTheHead { clear, pieces, clearance_m } => write!(
+                f,
+                "{clear} cluster(s) within reach and farther than {clearance_m} m from the head cluster, 2 needed \
+                 ({pieces} closer: pieces of the head)"
+            ),
         }
     }
 }
@@ -369,6 +386,14 @@ impl Tracker {
                 nearest_beyond_m,
                 reach_m: self.config.reach_m,
             });
+        }
+        // A cluster by the head is a piece of it (a face EM split in two): a hand started
+        // there would follow the face. Wait for a frame with both hands clear of it.
+        let clearance = self.config.split_distance_m;
+        let pieces = hands.iter().filter(|&&k| distance(k) < clearance).count();
+        hands.retain(|&k| distance(k) >= clearance);
+        if hands.len() < 2 {
+            return Err(NotStarted::HandsAtTheHead { clear: hands.len(), pieces, clearance_m: clearance });
         }
         // Of the remaining, the two largest are the hands.
         hands.sort_by(|&a, &b| clusters[b].mass.total_cmp(&clusters[a].mass));
@@ -885,6 +910,13 @@ mod tests {
         }
         assert_eq!(t.not_started().map(|w| w.cause()), Some("hands out of reach"));
         assert!(t.not_started().is_some_and(|w| w.to_string().contains("1.51 m")));
+        // The face split in two: its second piece, 6 cm from the first, is no hand.
+        t.update(
+            0.0,
+            Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 1.0), cluster(0.03, 1.65, 0.03, 0.5)])),
+        );
+        assert_eq!(t.not_started(), Some(NotStarted::HandsAtTheHead { clear: 1, pieces: 1, clearance_m: 0.15 }));
+        assert!(t.not_started().is_some_and(|w| w.to_string().contains("pieces of the head")));
         // A good frame starts the tracks and clears the reason.
         t.update(
             0.0,
