@@ -137,7 +137,7 @@ pub struct SceneFlowEngine {
     /// of that ring slot's frame (`skin` coverage).
     skin_maps: [Vec<Vec<f32>>; 3],
     /// `active[grid level]`: rays that may hold particles in the frame being estimated
-    /// (`skin` coverage): see `skin_whole_footprint`.
+    /// (`skin` coverage): see `skin_footprint_share`.
     active: Vec<Vec<bool>>,
 }
 
@@ -505,8 +505,8 @@ impl SceneFlowEngine {
     }
 
     /// Marks the rays of every grid level that cover a skin pixel of the reference view in
-    /// ring slot `slot`; with `skin_whole_footprint`, the finest ray grid's only where every
-    /// pixel they cover is skin.
+    /// ring slot `slot`; on the finest ray grid, where `skin_footprint_share` of the pixels
+    /// they cover are.
     fn update_active(&mut self, slot: usize) {
         let threshold = self.config.skin_threshold;
         let map = &self.skin_maps[slot][self.reference];
@@ -523,12 +523,17 @@ impl SceneFlowEngine {
             });
         }
         let level = finest_ray_level(&self.config);
-        if self.config.skin_whole_footprint && level > 0 {
+        if self.config.skin_footprint_share > 0.0 && level > 0 {
             let (w, h) = (self.grids[0].width, self.grids[0].height);
             let (cw, s) = (self.grids[level].width, 1usize << level);
+            let share = self.config.skin_footprint_share;
             self.active[level].par_iter_mut().enumerate().for_each(|(ray, a)| {
                 let (x0, y0) = ((ray % cw) * s, (ray / cw) * s);
-                *a = (y0..(y0 + s).min(h)).all(|y| (x0..(x0 + s).min(w)).all(|x| map[y * w + x] > threshold));
+                let (xs, ys) = (x0..(x0 + s).min(w), y0..(y0 + s).min(h));
+                let pixels = xs.len() * ys.len();
+                let skin = ys.flat_map(|y| xs.clone().map(move |x| y * w + x)).filter(|&i| map[i] > threshold).count();
+                // At least one pixel, as on the coarser grids, however small the share.
+                *a = skin > 0 && skin as f32 >= share * pixels as f32;
             });
         }
     }

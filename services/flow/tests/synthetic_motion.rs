@@ -455,16 +455,20 @@ fn rays_on_skin(engine: &SceneFlowEngine) -> (usize, usize) {
 }
 
 #[test]
-fn the_finest_grid_holds_only_rays_wholly_on_skin() {
+fn the_finest_grid_holds_rays_mostly_on_skin() {
     let half = EngineConfig { finest_level: 1, ..EngineConfig::default() };
-    let (whole, _) = skin_disc_engine(EngineConfig { skin_whole_footprint: true, ..half.clone() });
-    let (any, _) = skin_disc_engine(EngineConfig { skin_whole_footprint: false, ..half });
+    let (whole, _) = skin_disc_engine(EngineConfig { skin_footprint_share: 1.0, ..half.clone() });
+    let (any, _) = skin_disc_engine(EngineConfig { skin_footprint_share: 0.0, ..half.clone() });
     let (whole_rays, whole_straddling) = rays_on_skin(&whole);
     let (any_rays, any_straddling) = rays_on_skin(&any);
     eprintln!("whole: {whole_rays} rays, {whole_straddling} straddling; any: {any_rays}, {any_straddling}");
     assert_eq!(whole_straddling, 0, "every ray of the finest grid lies wholly on skin");
     assert!(any_straddling > 0, "with any skin pixel, the disc's rim rays straddle it");
     assert!(whole_rays * 2 > any_rays && whole_rays < any_rays, "only the rim goes: {whole_rays} of {any_rays}");
+    // Rays three quarters on skin: some of the rim, never more than any.
+    let (most, _) = skin_disc_engine(EngineConfig { skin_footprint_share: 0.75, ..half });
+    let (most_rays, _) = rays_on_skin(&most);
+    assert!(whole_rays <= most_rays && most_rays <= any_rays, "{whole_rays} <= {most_rays} <= {any_rays}");
 }
 
 #[test]
