@@ -80,18 +80,34 @@ fn faces_found_in_frontal_views_and_lent_to_the_others_make_the_skin_decision_pr
     }
 }
 
+/// A three-camera scene's renderer, the size of its front camera (`cam1`, the second) and
+/// buffers for a frame set and its masks.
+struct FrontCamera {
+    renderer: Renderer,
+    width: u32,
+    height: u32,
+    view: usize,
+    rgb: Vec<u8>,
+    masks: Vec<u8>,
+}
+
+impl FrontCamera {
+    fn new(spec: &SceneSpec) -> Self {
+        let renderer = Renderer::new(spec).expect("renderer");
+        let cam = &renderer.rig().cameras[1];
+        let (width, height) = (cam.width, cam.height);
+        let view = renderer.view_len();
+        Self { renderer, width, height, view, rgb: vec![0u8; view * 3], masks: vec![0u8; view] }
+    }
+}
+
 #[test]
 fn a_camera_mounted_sideways_finds_the_face_once_its_frames_are_turned_upright() {
     use handflow_flow::faces::Region;
     for turns in [1u8, 2, 3] {
         let mut spec = SceneSpec::preset("signer-3cam").expect("preset");
         spec.cameras.mount_quarter_turns = vec![0, turns, 0];
-        let renderer = Renderer::new(&spec).expect("renderer");
-        let cam = &renderer.rig().cameras[1];
-        let (w, h) = (cam.width, cam.height);
-        let view = renderer.view_len();
-        let mut rgb = vec![0u8; view * 3];
-        let mut masks = vec![0u8; view];
+        let FrontCamera { renderer, width: w, height: h, view, mut rgb, mut masks } = FrontCamera::new(&spec);
         let mut detector = FaceDetector::new().expect("model loads");
         let (mut turned, mut raw) = (0, 0);
         for frame in (0..40).step_by(5) {
@@ -120,12 +136,7 @@ fn a_face_of_known_size_is_found_as_well_on_binned_pixels() {
     let mut spec = SceneSpec::preset("signer-3cam").expect("preset");
     (spec.width, spec.height) = (1280, 960);
     spec.cameras.fov_deg = 34.0;
-    let renderer = Renderer::new(&spec).expect("renderer");
-    let cam = &renderer.rig().cameras[1];
-    let (w, h) = (cam.width, cam.height);
-    let view = renderer.view_len();
-    let mut rgb = vec![0u8; view * 3];
-    let mut masks = vec![0u8; view];
+    let FrontCamera { renderer, width: w, height: h, view, mut rgb, mut masks } = FrontCamera::new(&spec);
     let mut detector = FaceDetector::new().expect("model loads");
     let mut binned_frames = 0;
     for frame in (0..40).step_by(5) {

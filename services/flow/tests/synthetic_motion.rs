@@ -342,16 +342,21 @@ fn render_skin(camera: &Camera, k: f64) -> Vec<u8> {
     rgb
 }
 
-#[test]
-fn skin_coverage_estimates_only_the_skin_and_gets_it_right() {
-    let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
-    let config = EngineConfig {
+/// `config` for the skin disc scene: forwards/backwards, skin coverage, its depths and speeds.
+fn skin_disc_config(config: EngineConfig) -> EngineConfig {
+    EngineConfig {
         temporal: Temporal::ForwardsBackwards,
         coverage: handflow_flow::Coverage::Skin,
         depth_range: (2.0, 10.0),
         speed_bound: 0.2,
-        ..EngineConfig::default()
-    };
+        ..config
+    }
+}
+
+#[test]
+fn skin_coverage_estimates_only_the_skin_and_gets_it_right() {
+    let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
+    let config = skin_disc_config(EngineConfig::default());
     let mut engine = SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine");
     assert_eq!(engine.skin_models().len(), 2, "generic models until replaced");
     let mut estimates = 0;
@@ -423,14 +428,7 @@ fn skin_coverage_estimates_only_the_skin_and_gets_it_right() {
 /// coverage) and returns the engine.
 fn skin_disc_engine(config: EngineConfig) -> (SceneFlowEngine, Vec<Camera>) {
     let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
-    let config = EngineConfig {
-        temporal: Temporal::ForwardsBackwards,
-        coverage: handflow_flow::Coverage::Skin,
-        depth_range: (2.0, 10.0),
-        speed_bound: 0.2,
-        ..config
-    };
-    let mut engine = SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine");
+    let mut engine = SceneFlowEngine::new(skin_disc_config(config), cameras.clone(), 0).expect("engine");
     for k in 0..4 {
         let views: Vec<Vec<u8>> = cameras.iter().map(|c| render_skin(c, f64::from(k))).collect();
         let refs: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
