@@ -457,6 +457,18 @@ impl Tracker {
                 head_to_face = Some(near.map_or(a.head, |i| clusters[i].position));
             }
         }
+        // The head split into pieces (EM gives a face two components when its points are
+        // few): of the pieces, the head is the one at the face, not whichever the track
+        // happened to follow onto the top of the head.
+        if let (Some(a), None, Some(held)) = (anchor, head_to_face, best.0[0]) {
+            if let Some(at_face) = self.nearest_within(clusters, a.face) {
+                let piece =
+                    (clusters[at_face].position - clusters[held].position).norm() < self.config.split_distance_m;
+                if at_face != held && piece && !best.0[1..].contains(&Some(at_face)) {
+                    best.0[0] = Some(at_face);
+                }
+            }
+        }
         // Merged clusters: two tracks on (nearly) one blob coast through it.
         let mut merged = [false; 3];
         for a in 0..3 {
@@ -881,6 +893,25 @@ mod tests {
             Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 0.001), cluster(-0.2, 1.0, 0.0, 1.0)])),
         );
         assert!(tracks.iter().all(|k| k.state == State::Lost), "two real clusters cannot start three tracks");
+    }
+
+    #[test]
+    fn of_a_head_split_in_pieces_the_head_is_the_piece_at_the_face() {
+        let (left, right) = (cluster(0.25, 1.1, 0.0, 1.0), cluster(-0.2, 1.0, 0.0, 1.0));
+        // The track starts on the top of the head, 7 cm above the face.
+        let face = Vector3::new(0.0, 1.59, 0.03);
+        let anchor = HeadAnchor { face, head: face - Vector3::z() * 0.08 };
+        let top = cluster(0.0, 1.66, 0.0, 2.0);
+        let at_face = cluster(0.0, 1.58, 0.03, 1.5);
+        for (anchored, expected) in [(true, 1), (false, 0)] {
+            let mut t = tracker();
+            t.update_anchored(0.0, Some(&fit(vec![top, left, right])), anchored.then_some(anchor));
+            // Next frame the head comes in two pieces: the prediction sits on the top one.
+            t.update_anchored(1.0 / 30.0, Some(&fit(vec![top, at_face, left, right])), anchored.then_some(anchor));
+            let head = t.assigned()[0].map(|m| m.cluster);
+            assert_eq!(head, Some(expected), "anchored {anchored}: the head on cluster {head:?}");
+            assert_eq!(t.assigned()[1].map(|m| m.cluster), Some(2), "the hands keep theirs");
+        }
     }
 
     #[test]
