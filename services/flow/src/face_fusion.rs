@@ -260,14 +260,16 @@ fn agrees(cam: &Camera, b: &FaceBox, centre: &Point3<f64>, width_m: f64) -> bool
     size_ok && centre_error(cam, b, centre).is_some_and(|e| e <= MAX_CENTRE_ERROR)
 }
 
+/// Width in `cam`'s pixels of a face `width_m` wide at `centre` (`None` behind the camera).
+pub fn face_width_px(cam: &Camera, centre: &Point3<f64>, width_m: f64) -> Option<f64> {
+    let depth = cam.world_to_camera(centre).z;
+    (depth > 0.0).then(|| width_m * cam.matrix[(0, 0)] / depth)
+}
+
 /// The box a face of `width_m` at `centre` covers in `cam`, if wholly inside the image.
 fn project_face(cam: &Camera, centre: &Point3<f64>, width_m: f64) -> Option<FaceBox> {
     let q = cam.project(centre)?;
-    let depth = cam.world_to_camera(centre).z;
-    if depth <= 0.0 {
-        return None;
-    }
-    let side = width_m * cam.matrix[(0, 0)] / depth;
+    let side = face_width_px(cam, centre, width_m)?;
     let (x, y) = (q.x - 0.5 * side, q.y - 0.5 * side);
     let inside = x >= 0.0 && y >= 0.0 && x + side <= f64::from(cam.width) && y + side <= f64::from(cam.height);
     inside.then_some(FaceBox { x: x as f32, y: y as f32, width: side as f32, height: side as f32, score: 0.0 })

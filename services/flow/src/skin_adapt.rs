@@ -4,7 +4,7 @@
 
 use handflow_protocol::Camera;
 
-use crate::face_fusion::{fuse_faces_remembering, FusedFaces, KnownFace};
+use crate::face_fusion::{face_width_px, fuse_faces_remembering, FusedFaces, KnownFace};
 use crate::faces::{detection_bin, FaceBox, FaceDetector, Region};
 use crate::skin::SkinModel;
 
@@ -123,7 +123,10 @@ impl SkinAdapter {
             // may be missed; the signer is the nearest face).
             let expected_px = match last {
                 Some(face) => face.width.min(face.height),
-                None => self.known.as_ref().map_or(0.0, |k| expected_face_px(cam, k)),
+                None => {
+                    self.known.as_ref().and_then(|k| face_width_px(cam, &k.centre.into(), k.width_m)).unwrap_or(0.0)
+                        as f32
+                }
             };
             let bin = detection_bin(expected_px);
             let region = match last {
@@ -167,18 +170,5 @@ impl SkinAdapter {
         self.last_fused = fused;
         self.stats.seconds += started.elapsed().as_secs_f64();
         changed
-    }
-}
-
-/// Width in camera `cam`'s pixels of the face `known` (its physical width at its depth
-/// there; 0 when it is not in front of the camera).
-fn expected_face_px(cam: &Camera, known: &KnownFace) -> f32 {
-    let centre = nalgebra::Point3::from(known.centre);
-    let depth = (cam.rotation * centre.coords + cam.translation).z;
-    let focal = 0.5 * (cam.matrix[(0, 0)] + cam.matrix[(1, 1)]);
-    if depth > 1e-6 {
-        (focal * known.width_m / depth) as f32
-    } else {
-        0.0
     }
 }
