@@ -511,6 +511,26 @@ impl Tracker {
                 best.0[k] = Some(i);
             }
         }
+        // A hand EM split in pieces (its points few, or two fingers' worth apart): the free
+        // pieces by the one the track took are the same hand, and measure it together. Alone,
+        // the piece the track took looks like a hand half hidden, and the track would coast on
+        // its prediction beside the very hand it lost.
+        let whole: [Option<Component>; 3] = std::array::from_fn(|k| {
+            let i = best.0[k].filter(|_| k > 0 && !merged[k])?;
+            let typical = previous[k].typical_mass;
+            if typical <= 0.0 || clusters[i].mass >= self.config.partial_mass_share.1 * typical {
+                return None;
+            }
+            let held: Vec<Vector3<f64>> =
+                (0..3).filter(|&o| o != k).filter_map(|o| best.0[o].map(|j| clusters[j].position)).collect();
+            let near = |j: usize| (clusters[j].position - clusters[i].position).norm();
+            let pieces: Vec<usize> = (0..clusters.len())
+                .filter(|&j| j != i && !best.0.contains(&Some(j)) && !taken.contains(&j))
+                .filter(|&j| near(j) < self.config.split_distance_m)
+                .filter(|&j| held.iter().all(|h| (clusters[j].position - h).norm() > near(j)))
+                .collect();
+            (!pieces.is_empty()).then(|| merge_pieces(clusters[i], pieces.iter().map(|&j| clusters[j])))
+        });
         self.assigned = [None; 3];
         let mut out = previous;
         for k in 0..3 {
@@ -536,7 +556,7 @@ impl Tracker {
             }
             out[k] = match best.0[k] {
                 Some(i) => {
-                    let c = clusters[i];
+                    let c = whole[k].as_ref().unwrap_or(clusters[i]);
                     let distance = (c.position - p).norm();
                     if distance > gate {
                         self.reinitialisations += 1;
@@ -611,6 +631,24 @@ impl Tracker {
             .min_by(|a, b| a.1.total_cmp(&b.1))
             .map(|(i, _)| i)
     }
+}
+
+/// One component for an object EM split in pieces: their masses summed, position and
+/// velocity their mass-weighted means (the rest as `main`'s).
+fn merge_pieces<'a>(main: &Component, pieces: impl Iterator<Item = &'a Component>) -> Component {
+    let mut whole = *main;
+    let (mut position, mut velocity) = (main.position * main.mass, main.velocity * main.mass);
+    for piece in pieces {
+        position += piece.position * piece.mass;
+        velocity += piece.velocity * piece.mass;
+        whole.mass += piece.mass;
+        whole.mixing += piece.mixing;
+    }
+    if whole.mass > 0.0 {
+        whole.position = position / whole.mass;
+        whole.velocity = velocity / whole.mass;
+    }
+    whole
 }
 
 fn measured(c: &Component, confidence: f64) -> Track {
@@ -881,6 +919,33 @@ mod tests {
         let time = 6.0 * dt;
         t.update(time, Some(&fit(vec![head(), cluster(0.2, 1.0, 0.0, 1.0), right(time, 0.0, 1.0)])));
         assert_eq!(t.assigned()[2].map(|m| m.pull), Some(1.0));
+    }
+
+    #[test]
+    fn a_hand_split_in_pieces_is_measured_whole_where_its_prediction_went_astray() {
+        // At 6 fps, the left hand started with a wrong velocity (1.2 m/s towards the body):
+        // its prediction lands 20 cm inside, by no cluster.
+        let mut t = tracker();
+        let dt = 1.0 / 6.0;
+        let head = || cluster(0.0, 1.6, 0.0, 2.0);
+        let right = || cluster(-0.3, 1.3, 0.0, 1.0);
+        t.update(0.0, Some(&fit(vec![head(), cluster(0.25, 1.2, -2.4, 1.0), right()])));
+        // Next frame EM splits the hand (which barely moved) in two pieces 4 cm apart, the
+        // nearer to the prediction a fifth of the hand.
+        let tracks = t.update(
+            dt,
+            Some(&fit(vec![head(), right(), cluster(0.27, 1.16, 0.0, 0.75), cluster(0.24, 1.19, 0.0, 0.2)])),
+        );
+        let pull = t.assigned()[1].expect("the left hand is measured").pull;
+        assert_eq!(pull, 1.0, "both pieces together are the whole hand");
+        let whole_x = (0.27 * 0.75 + 0.24 * 0.2) / 0.95;
+        assert!((tracks[1].position.x - whole_x).abs() < 1e-9, "left hand at {:?}", tracks[1].position);
+        assert_eq!(tracks[1].state, State::Tracked);
+        // A piece by another track's cluster is that object's, not this hand's.
+        let mut t = tracker();
+        t.update(0.0, Some(&fit(vec![head(), cluster(0.25, 1.2, 0.0, 1.0), right()])));
+        t.update(dt, Some(&fit(vec![head(), cluster(-0.05, 1.3, 0.0, 0.2), right(), cluster(-0.19, 1.3, 0.0, 0.3)])));
+        assert!(t.assigned()[1].expect("measured").pull < 1e-9, "the right hand's piece joined the left hand");
     }
 
     #[test]
