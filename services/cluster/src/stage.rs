@@ -16,13 +16,13 @@ use crate::WeightedPoint;
 /// The largest half-thickness the centre correction assumes for a hand, metres: an adult
 /// palm is 2-4 cm thick, a loose fist a little more.
 pub const HAND_HALF_THICKNESS_M: f64 = 0.02;
-/// The farthest the head's centre is put behind its skin's centroid, metres. A skin sphere
-/// (the synthetic head) has its centre 2r/3 behind the visible points' centroid, but a
-/// real head's skin is a face with cheeks, ears and neck around it: on the shared real
-/// session its points' centroid lies 2.5 cm behind the face the detectors triangulate and
-/// 0.5 cm in front of the reference's head point (the ear midpoint), and the sphere model,
-/// reading the neck's vertical spread as a radius, moved it 10 cm too far back.
-pub const HEAD_MAX_CENTRE_SHIFT_M: f64 = 0.045;
+/// The largest radius the head's centre correction assumes, metres: half an adult head's
+/// depth, nose tip to the back of the head (about 20 cm). The visible skin of a head seen
+/// whole (the synthetic head, skin all over) has its centroid 2r/3, up to 6.7 cm, in front
+/// of the centre. A real head's skin the engine cannot place in depth needs no such move
+/// ([`surface_share`]): the full move, bounded at 4.5 cm, put the shared real session's head
+/// 3.8 cm behind its reference.
+pub const HEAD_MAX_RADIUS_M: f64 = 0.10;
 /// Components fitted besides head and hands, seeded at the points farthest from them: skin
 /// the three objects do not explain (the neck, a ghost, a hand seen split in two by another
 /// view's occlusion) gets a component of its own instead of pulling two hands into one.
@@ -256,7 +256,7 @@ impl ClusterStage {
         if let (Some(fit), Some(raw), true) = (&fit, &raw, self.centre_correction) {
             if let (State::Tracked, Some(m)) = (tracks[0].state, self.tracker.assigned()[0]) {
                 let mut head = raw.components[m.cluster];
-                let bound = 1.5 * HEAD_MAX_CENTRE_SHIFT_M * surface_share(&head, &self.eye);
+                let bound = HEAD_MAX_RADIUS_M * surface_share(&head, &self.eye);
                 surface_to_centre(&mut head, &self.eye, self.em.min_std, f64::INFINITY, bound);
                 // By the share of the measurement the tracker took.
                 tracks[0].position += (head.position - fit.components[m.cluster].position) * m.pull;
@@ -503,7 +503,7 @@ mod tests {
         }
         let mut surface = component_of(&cap);
         assert_eq!(surface_share(&surface, &eye), 1.0);
-        surface_to_centre(&mut surface, &eye, 0.0, f64::INFINITY, 1.5 * HEAD_MAX_CENTRE_SHIFT_M);
+        surface_to_centre(&mut surface, &eye, 0.0, f64::INFINITY, HEAD_MAX_RADIUS_M);
         assert!((surface.position - centre).norm() < 0.01, "{:?}", surface.position - centre);
         // The same face with depth noise filling the inside and beyond, twice as deep as wide,
         // centred on the middle: its centroid is already where the head is.
@@ -515,7 +515,7 @@ mod tests {
         let mut cloud = component_of(&noisy);
         assert!(surface_share(&cloud, &eye) == 0.0, "{}", surface_share(&cloud, &eye));
         let before = cloud.position;
-        let bound = 1.5 * HEAD_MAX_CENTRE_SHIFT_M * surface_share(&cloud, &eye);
+        let bound = HEAD_MAX_RADIUS_M * surface_share(&cloud, &eye);
         surface_to_centre(&mut cloud, &eye, 0.0, f64::INFINITY, bound);
         assert_eq!(cloud.position, before);
         // A tall narrow object (a head with its neck) is judged by its narrowest width.

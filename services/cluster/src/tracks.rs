@@ -459,14 +459,22 @@ impl Tracker {
         }
         // The head split into pieces (EM gives a face two components when its points are
         // few): of the pieces, the head is the one at the face, not whichever the track
-        // happened to follow onto the top of the head.
-        if let (Some(a), None, Some(held)) = (anchor, head_to_face, best.0[0]) {
-            if let Some(at_face) = self.nearest_within(clusters, a.face) {
-                let piece =
-                    (clusters[at_face].position - clusters[held].position).norm() < self.config.split_distance_m;
-                if at_face != held && piece && !best.0[1..].contains(&Some(at_face)) {
-                    best.0[0] = Some(at_face);
-                }
+        // happened to follow onto the top of the head; before the face is placed in 3D, the
+        // heaviest piece.
+        if let (None, Some(held)) = (head_to_face, best.0[0]) {
+            let piece = |i: usize| {
+                i != held
+                    && !best.0[1..].contains(&Some(i))
+                    && (clusters[i].position - clusters[held].position).norm() < self.config.split_distance_m
+            };
+            let head = match anchor {
+                Some(a) => self.nearest_within(clusters, a.face).filter(|&i| piece(i)),
+                None => (0..clusters.len())
+                    .filter(|&i| piece(i) && clusters[i].mass > clusters[held].mass)
+                    .max_by(|&a, &b| clusters[a].mass.total_cmp(&clusters[b].mass)),
+            };
+            if let Some(i) = head {
+                best.0[0] = Some(i);
             }
         }
         // Merged clusters: two tracks on (nearly) one blob coast through it.
@@ -966,15 +974,16 @@ mod tests {
         // The track starts on the top of the head, 7 cm above the face.
         let face = Vector3::new(0.0, 1.59, 0.03);
         let anchor = HeadAnchor { face, head: face - Vector3::z() * 0.08 };
-        let top = cluster(0.0, 1.66, 0.0, 2.0);
         let at_face = cluster(0.0, 1.58, 0.03, 1.5);
-        for (anchored, expected) in [(true, 1), (false, 0)] {
+        // Without a face placed in 3D, the heaviest piece.
+        for (anchored, top_mass, expected) in [(true, 2.0, 1), (false, 2.0, 0), (false, 0.5, 1)] {
+            let top = cluster(0.0, 1.66, 0.0, top_mass);
             let mut t = tracker();
             t.update_anchored(0.0, Some(&fit(vec![top, left, right])), anchored.then_some(anchor));
             // Next frame the head comes in two pieces: the prediction sits on the top one.
             t.update_anchored(1.0 / 30.0, Some(&fit(vec![top, at_face, left, right])), anchored.then_some(anchor));
             let head = t.assigned()[0].map(|m| m.cluster);
-            assert_eq!(head, Some(expected), "anchored {anchored}: the head on cluster {head:?}");
+            assert_eq!(head, Some(expected), "anchored {anchored}, top {top_mass}: the head on cluster {head:?}");
             assert_eq!(t.assigned()[1].map(|m| m.cluster), Some(2), "the hands keep theirs");
         }
     }
