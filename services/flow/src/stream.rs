@@ -103,13 +103,10 @@ pub fn stream_engine_config(
     reference: usize,
 ) -> EngineConfig {
     let defaults = EngineConfig::for_variant(variant);
-    let palm_px = expected_palm_px(cameras, reference);
-    let finest_level = cameras.get(reference).map_or(1, |_| working_level(palm_px));
-    let ray_subsampling = cameras.get(reference).map_or(0, |_| ray_subsampling(palm_px, finest_level));
+    let finest_level = cameras.get(reference).map_or(1, |_| working_level(expected_palm_px(cameras, reference)));
     EngineConfig {
         particles_per_ray: particles_per_ray.unwrap_or(STREAM_PARTICLES_PER_RAY),
         finest_level,
-        ray_subsampling,
         // The working level and one coarser (as the half-resolution grid has always run).
         pyramid_levels: finest_level + 2,
         warm_coarse_extra_loops: Some(2.min(defaults.coarse_extra_loops)),
@@ -188,20 +185,6 @@ pub fn working_level(palm_px: f64) -> usize {
         level += 1;
     }
     level
-}
-
-/// Least width of a palm in rays: about 50 rays on the palm, enough for its cluster's mean
-/// and spread when part of it is hidden.
-pub const MIN_PALM_RAYS: f64 = 8.0;
-
-/// Rays `2^s` pixels apart on the working level `level` for palms `palm_px` wide at full
-/// resolution: the largest spacing that keeps [`MIN_PALM_RAYS`] across a palm, at most one
-/// level coarser (the next coarser level is the last the stream's pyramid has). The images
-/// stay those of the working level, whose detail separates a hand from what is behind it;
-/// the trajectories need far fewer points than pixels, and each ray costs the same.
-pub fn ray_subsampling(palm_px: f64, level: usize) -> usize {
-    let on_level = palm_px / f64::from(1u32 << level.min(31));
-    usize::from(on_level / 2.0 >= MIN_PALM_RAYS)
 }
 
 /// One line for the log: the level the engine estimates on, its ray grid and why.
@@ -888,17 +871,6 @@ mod tests {
     }
 
     #[test]
-    fn rays_are_spaced_to_keep_eight_across_a_palm() {
-        assert_eq!(ray_subsampling(57.0, 1), 1, "the shared real session: 14 rays across");
-        assert_eq!(ray_subsampling(32.4, 1), 1, "the synthetic rigs: 8 rays across");
-        assert_eq!(ray_subsampling(31.0, 1), 0);
-        assert_eq!(ray_subsampling(26.0, 0), 1);
-        assert_eq!(ray_subsampling(15.0, 0), 0);
-        assert_eq!(ray_subsampling(1e6, 3), 1, "at most one level coarser");
-        assert_eq!(ray_subsampling(f64::NAN, 1), 0);
-    }
-
-    #[test]
     fn the_working_level_follows_image_size_and_distance() {
         let level = |cams: &[Camera]| working_level(expected_palm_px(cams, 1));
         // Where three cameras on a 1.8 m arc look: the signer at the arc's centre.
@@ -928,13 +900,10 @@ mod tests {
     fn the_stream_configuration_estimates_on_the_working_level() {
         let cams = arc(1.8, &[-35.0, 0.0, 35.0], 1920, 1080, 50.0);
         let config = stream_engine_config(Variant::Handflow, None, 30.0, &cams, 1);
-        assert_eq!((config.finest_level, config.ray_subsampling, config.pyramid_levels), (2, 1, 4));
+        assert_eq!((config.finest_level, config.pyramid_levels), (2, 4));
         config.validate().expect("valid");
         let config = stream_engine_config(Variant::Handflow, None, 30.0, &arc(1.8, &[0.0, 30.0], 320, 240, 50.0), 0);
-        assert_eq!((config.finest_level, config.ray_subsampling, config.pyramid_levels), (0, 1, 2));
-        config.validate().expect("valid");
-        let config = stream_engine_config(Variant::Handflow, None, 30.0, &arc(1.8, &[0.0, 30.0], 240, 180, 50.0), 0);
-        assert_eq!((config.finest_level, config.ray_subsampling), (0, 0), "palms 12 px wide");
+        assert_eq!((config.finest_level, config.pyramid_levels), (0, 2));
         config.validate().expect("valid");
     }
 }
