@@ -111,6 +111,7 @@ pub struct EngineConfig {
     /// grid: a quarter of the rays keep the finer images' detail, which is what separates a
     /// hand from what is behind it, while the trajectories need far fewer points than
     /// pixels. Needs `per_level_rays`; `finest_level + ray_subsampling` must be a level.
+    /// Streams choose it from the expected palm size (`stream::ray_subsampling`).
     pub ray_subsampling: usize,
     /// Seed of every random draw (default 0). Same seed, same result, any thread count.
     pub seed: u64,

@@ -87,7 +87,8 @@ pub const STREAM_COLD_START_PASSES: usize = 8;
 /// The engine configuration for trajectories: the variant's defaults, skin coverage, the
 /// forwards/backwards likelihood, the search space of a signer at `fps`, the grid of the
 /// working level the rig's image size and expected palm size give ([`working_level`]:
-/// a hand needs a few hundred points, not every pixel), 2
+/// a hand needs a few hundred points, not every pixel) with rays two pixels apart where a
+/// palm stays [`MIN_PALM_RAYS`] wide ([`ray_subsampling`]), 2
 /// extra coarse loops instead of 7 once the previous frame's posterior is the prior (it
 /// replaces most of the exploration a first frame needs), extra passes over the first
 /// frame ([`STREAM_COLD_START_PASSES`]) and no weighted-median refinement (on the
@@ -103,10 +104,12 @@ pub fn stream_engine_config(
     reference: usize,
 ) -> EngineConfig {
     let defaults = EngineConfig::for_variant(variant);
-    let finest_level = cameras.get(reference).map_or(1, |_| working_level(expected_palm_px(cameras, reference)));
+    let palm_px = expected_palm_px(cameras, reference);
+    let finest_level = cameras.get(reference).map_or(1, |_| working_level(palm_px));
     EngineConfig {
         particles_per_ray: particles_per_ray.unwrap_or(STREAM_PARTICLES_PER_RAY),
         finest_level,
+        ray_subsampling: ray_subsampling(palm_px, finest_level),
         // The working level and one coarser (as the half-resolution grid has always run).
         pyramid_levels: finest_level + 2,
         warm_coarse_extra_loops: Some(2.min(defaults.coarse_extra_loops)),
@@ -131,6 +134,15 @@ pub const PALM_WIDTH_M: f64 = 0.085;
 /// tracked the right hand within 5 cm in 74 % of frames and 14 px palms in 19 %; the
 /// synthetic presets (palms 16 px on their working level) stay on target.
 pub const MIN_PALM_PX: f64 = 16.0;
+/// Least width of a palm in rays (rays of the finest grid across it). A hand's trajectory
+/// needs its cluster, a hundred or so points, not a point per pixel; but the finest grid
+/// keeps only rays wholly on skin, which erodes about one ray off every rim, and a small
+/// cluster loses a larger share of its outline that way. Measured: palms 14 rays wide (the
+/// shared real session's webcams, rays two pixels apart) tracked every object as well or
+/// better than 28 rays did, at 1.8x the speed; palms 8 rays wide (the synthetic presets'
+/// 640x480 rigs, rays two pixels apart) lost the hands at 6 fps and put heads 2.5 cm off
+/// (BENCHMARKS.md). The bound lies between the two.
+pub const MIN_PALM_RAYS: f64 = 12.0;
 /// Coarsest working level (an eighth of the resolution).
 pub const MAX_WORKING_LEVEL: usize = 3;
 /// Distance to the signer assumed when the cameras' axes do not meet in front of the
@@ -185,6 +197,15 @@ pub fn working_level(palm_px: f64) -> usize {
         level += 1;
     }
     level
+}
+
+/// Ray spacing on the working level `level` for palms `palm_px` wide at full resolution:
+/// rays two pixels apart (1) when the palm is still [`MIN_PALM_RAYS`] rays wide with them,
+/// else one per pixel (0). The images stay those of the working level: their detail is
+/// what separates a hand from what lies behind it, while the rays are how many points the
+/// clusters get. So a palm is 12 to 24 rays wide whatever the resolution (from 16 px up).
+pub fn ray_subsampling(palm_px: f64, level: usize) -> usize {
+    usize::from(palm_px / f64::from(1u32 << (level + 1)) >= MIN_PALM_RAYS)
 }
 
 /// One line for the log: the level the engine estimates on, its ray grid and why.
@@ -871,6 +892,25 @@ mod tests {
     }
 
     #[test]
+    fn rays_are_two_pixels_apart_only_where_a_palm_stays_twelve_rays_wide() {
+        // The shared real session's webcams: 28 px palms on level 1, 14 rays two pixels apart.
+        assert_eq!(ray_subsampling(57.0, working_level(57.0)), 1);
+        // 640x480 rigs: 16 px palms on level 1 would be 8 rays wide.
+        assert_eq!(ray_subsampling(32.4, working_level(32.4)), 0);
+        assert_eq!(ray_subsampling(47.9, working_level(47.9)), 0);
+        assert_eq!(ray_subsampling(48.0, working_level(48.0)), 1);
+        // Palms 16 px wide on level 2: one ray per pixel again.
+        assert_eq!(ray_subsampling(64.0, working_level(64.0)), 0);
+        assert_eq!(ray_subsampling(f64::NAN, 0), 0);
+        // Every palm from 16 px up gets between 12 and 24 rays (below 16 px, one per pixel).
+        for palm in (16..2000).map(f64::from) {
+            let level = working_level(palm);
+            let rays = palm / f64::from(1u32 << (level + ray_subsampling(palm, level)));
+            assert!((MIN_PALM_RAYS..24.0).contains(&rays) || level == MAX_WORKING_LEVEL, "{palm} px: {rays} rays");
+        }
+    }
+
+    #[test]
     fn the_working_level_follows_image_size_and_distance() {
         let level = |cams: &[Camera]| working_level(expected_palm_px(cams, 1));
         // Where three cameras on a 1.8 m arc look: the signer at the arc's centre.
@@ -900,7 +940,12 @@ mod tests {
     fn the_stream_configuration_estimates_on_the_working_level() {
         let cams = arc(1.8, &[-35.0, 0.0, 35.0], 1920, 1080, 50.0);
         let config = stream_engine_config(Variant::Handflow, None, 30.0, &cams, 1);
-        assert_eq!((config.finest_level, config.pyramid_levels), (2, 4));
+        // Palms 97 px wide: 24 px on level 2, 12 rays two pixels apart.
+        assert_eq!((config.finest_level, config.pyramid_levels, config.ray_subsampling), (2, 4, 1));
+        config.validate().expect("valid");
+        // 1280x720 webcams at 1.5 m: palms 28 px on level 1, rays two pixels apart.
+        let config = stream_engine_config(Variant::Handflow, None, 6.0, &arc(1.5, &[-30.0, 0.0, 30.0], 1280, 720, 70.0), 1);
+        assert_eq!((config.finest_level, config.pyramid_levels, config.ray_subsampling), (1, 3, 1));
         config.validate().expect("valid");
         let config = stream_engine_config(Variant::Handflow, None, 30.0, &arc(1.8, &[0.0, 30.0], 320, 240, 50.0), 0);
         assert_eq!((config.finest_level, config.pyramid_levels), (0, 2));
