@@ -663,10 +663,12 @@ fn run_streaming(args: &RunArgs) -> Result<()> {
     if args.recording.is_some() {
         p.recording.clone_from(&args.recording);
         p.preset = None;
+        p.cameras.clear();
     }
     if args.preset.is_some() {
         p.preset.clone_from(&args.preset);
         p.recording = None;
+        p.cameras.clear();
     }
     for (field, value) in
         [(&mut p.mode, &args.mode), (&mut p.services, &args.services), (&mut p.variant, &args.variant)]
@@ -695,7 +697,7 @@ fn run_streaming(args: &RunArgs) -> Result<()> {
     if args.up.is_some() {
         p.up = args.up;
     }
-    let demo = p.recording.is_none() && p.preset.is_none();
+    let demo = p.recording.is_none() && p.preset.is_none() && p.cameras.is_empty();
     if demo {
         let rec = demo_recording()?;
         p.recording = Some(rec);

@@ -6,7 +6,13 @@
 //! ```toml
 //! mode = "replay"                  # or "live"
 //! recording = "out/signer-3cam"    # a recording folder to replay, or
-//! # preset = "signer-3cam"         # a synthetic scene ingest renders as it goes
+//! # preset = "signer-3cam"         # a synthetic scene ingest renders as it goes, or
+//! # live cameras, each with its calibration's name (`calibration` says where they are):
+//! # [[cameras]]
+//! # name = "cam_0"
+//! # source = "v4l2:///dev/video0"  # rtsp://, http(s)://, file:///video.mp4, gst:<GStreamer source>
+//! # size = [1280, 720]             # asked of the device (default: the calibration's)
+//! # fps = 30                       # asked of the device
 //! out = "out/trajectories.jsonl"   # the JSON Lines file the publisher writes
 //! pace = "max"                     # or "recorded" (default: max in replay, recorded in live)
 //! loop = false                     # replay the source forever
@@ -42,6 +48,8 @@ pub struct Pipeline {
     pub recording: Option<PathBuf>,
     /// Synthetic scene rendered by ingest as it goes.
     pub preset: Option<String>,
+    /// Live cameras (`[[cameras]]`), placed by `calibration`.
+    pub cameras: Vec<handflow_ingest::live::LiveCameraSpec>,
     /// JSON Lines file of the trajectories.
     pub out: Option<PathBuf>,
     /// `max` or `recorded`.
@@ -74,6 +82,7 @@ impl Default for Pipeline {
             mode: "replay".into(),
             recording: None,
             preset: None,
+            cameras: Vec::new(),
             out: None,
             pace: None,
             looped: false,
@@ -112,10 +121,22 @@ impl Pipeline {
                 bail!("field `pace`: `{pace}` (expected `max` or `recorded`)");
             }
         }
-        match (&self.recording, &self.preset) {
-            (Some(_), Some(_)) => bail!("fields `recording` and `preset`: give one source, not both"),
-            (None, None) => bail!("no source: give `recording` (a folder) or `preset` (a synthetic scene)"),
-            _ => {}
+        let sources = [self.recording.is_some(), self.preset.is_some(), !self.cameras.is_empty()];
+        match sources.iter().filter(|&&s| s).count() {
+            0 => bail!("no source: give `recording` (a folder), `preset` (a synthetic scene) or `[[cameras]]` (live)"),
+            1 => {}
+            _ => bail!("fields `recording`, `preset` and `[[cameras]]`: give one source, not several"),
+        }
+        if !self.cameras.is_empty() && self.calibration.is_none() {
+            bail!("`[[cameras]]` need `calibration`: the file that says where each camera is");
+        }
+        for (k, camera) in self.cameras.iter().enumerate() {
+            handflow_ingest::live::CameraSource::parse(&camera.source)
+                .map_err(anyhow::Error::msg)
+                .with_context(|| format!("`[[cameras]]` {} (`{}`)", k + 1, camera.name))?;
+            if self.cameras[..k].iter().any(|c| c.name == camera.name) {
+                bail!("`[[cameras]]`: camera `{}` is given twice", camera.name);
+            }
         }
         if self.variant != "handflow" && self.variant != "paper" {
             bail!("field `variant`: `{}` (expected `handflow` or `paper`)", self.variant);
@@ -205,6 +226,9 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     }
     if let Some(preset) = &p.preset {
         ingest_args.extend(["--preset".into(), preset.clone()]);
+    }
+    if !p.cameras.is_empty() {
+        ingest_args.extend(["--cameras-json".into(), serde_json::to_string(&p.cameras)?]);
     }
     if let Some(pace) = &p.pace {
         ingest_args.extend(["--pace".into(), pace.clone()]);
@@ -372,6 +396,39 @@ mod tests {
         assert!(e.contains("speed"), "{e}");
         std::fs::write(&path, "mode = \"replay\"\n").unwrap();
         assert!(format!("{:#}", Pipeline::load(&path).unwrap_err()).contains("no source"));
+    }
+
+    #[test]
+    fn live_cameras_need_their_calibration_a_known_source_kind_and_no_other_source() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.toml");
+        let camera = |name: &str, source: &str| format!("\n[[cameras]]\nname = \"{name}\"\nsource = \"{source}\"\n");
+        let load = |text: String| {
+            std::fs::write(&path, text).unwrap();
+            Pipeline::load(&path).map_err(|e| format!("{e:#}"))
+        };
+        let ok = load(format!(
+            "calibration = \"rig.toml\"\n{}{}",
+            camera("a", "v4l2:///dev/video0"),
+            camera("b", "rtsp://h/s")
+        ))
+        .unwrap();
+        assert_eq!(ok.cameras.len(), 2);
+        assert_eq!(ok.calibration.as_deref(), Some(dir.path().join("rig.toml").as_path()));
+        let e = load(camera("a", "v4l2:///dev/video0")).unwrap_err();
+        assert!(e.contains("calibration"), "{e}");
+        let e = load(format!("calibration = \"rig.toml\"\n{}", camera("a", "/dev/video0"))).unwrap_err();
+        assert!(e.contains("`a`") && e.contains("unknown kind"), "{e}");
+        let e = load(format!(
+            "calibration = \"rig.toml\"\n{}{}",
+            camera("a", "gst:videotestsrc"),
+            camera("a", "gst:videotestsrc")
+        ))
+        .unwrap_err();
+        assert!(e.contains("given twice"), "{e}");
+        let e = load(format!("recording = \"rec\"\ncalibration = \"rig.toml\"\n{}", camera("a", "gst:videotestsrc")))
+            .unwrap_err();
+        assert!(e.contains("not several"), "{e}");
     }
 
     #[test]

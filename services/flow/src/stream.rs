@@ -944,7 +944,8 @@ mod tests {
         assert_eq!((config.finest_level, config.pyramid_levels, config.ray_subsampling), (2, 4, 1));
         config.validate().expect("valid");
         // 1280x720 webcams at 1.5 m: palms 28 px on level 1, rays two pixels apart.
-        let config = stream_engine_config(Variant::Handflow, None, 6.0, &arc(1.5, &[-30.0, 0.0, 30.0], 1280, 720, 70.0), 1);
+        let config =
+            stream_engine_config(Variant::Handflow, None, 6.0, &arc(1.5, &[-30.0, 0.0, 30.0], 1280, 720, 70.0), 1);
         assert_eq!((config.finest_level, config.pyramid_levels, config.ray_subsampling), (1, 3, 1));
         config.validate().expect("valid");
         let config = stream_engine_config(Variant::Handflow, None, 30.0, &arc(1.8, &[0.0, 30.0], 320, 240, 50.0), 0);

@@ -11,6 +11,7 @@
 use std::path::{Path, PathBuf};
 
 pub mod camera_match;
+pub mod live;
 pub mod recording;
 pub mod synthetic;
 

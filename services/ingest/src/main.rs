@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
+use handflow_ingest::live::{camera::clock_now_ns, CameraSource, FrameSetSync, LiveCamera, LiveCameraSpec};
 use handflow_ingest::synthetic::{Renderer, SceneSpec};
 use handflow_ingest::{OpenOptions, Recording};
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
@@ -16,8 +17,12 @@ use handflow_protocol::Rig;
 #[command(name = "handflow-ingest", about = "Fake cameras: replay a recording or render a synthetic scene")]
 struct Args {
     /// Recording folder to replay.
-    #[arg(long, conflicts_with = "preset")]
+    #[arg(long, conflicts_with_all = ["preset", "cameras_json"])]
     recording: Option<PathBuf>,
+    /// Live cameras, as the pipeline file's `[[cameras]]` in JSON (the launcher passes
+    /// them); their calibration comes from `--calibration`.
+    #[arg(long, conflicts_with = "preset", requires = "calibration")]
+    cameras_json: Option<String>,
     /// Built-in synthetic scene to render live instead (signer-3cam, hands-cross, ...).
     #[arg(long)]
     preset: Option<String>,
@@ -122,6 +127,10 @@ fn main() {
 }
 
 fn run(args: Args) -> Result<()> {
+    if let Some(json) = &args.cameras_json {
+        let specs: Vec<LiveCameraSpec> = serde_json::from_str(json).context("`--cameras-json`")?;
+        return run_live(&args, &specs);
+    }
     let mut source = match (&args.recording, &args.preset) {
         (Some(dir), _) => {
             let options = OpenOptions { calibration: args.calibration.clone(), start: args.start, frames: None };
@@ -270,6 +279,17 @@ fn run(args: Args) -> Result<()> {
             tracing::debug!("frame set {sequence} sent");
         }
     }
+    end_stream(&node, &frames, &rig, total)
+}
+
+/// Sends the end of the stream after `total` frame sets and stays until stopped: the
+/// samples in flight live in this process's memory.
+fn end_stream(
+    node: &ipc::IpcNode,
+    frames: &ipc::Output<[u8], FrameHeader>,
+    rig: &ipc::Output<[u8], RigHeader>,
+    total: u64,
+) -> Result<()> {
     let mut end = frames.publisher.loan_slice(0).context("loaning the end-of-stream sample")?;
     *end.user_header_mut() = FrameHeader {
         protocol_version: PROTOCOL_VERSION,
@@ -280,11 +300,188 @@ fn run(args: Args) -> Result<()> {
     end.send().context("sending end of stream")?;
     frames.notify()?;
     tracing::info!("end of stream after {total} frame sets; waiting to be stopped");
-    // Stay until stopped: the samples in flight live in this process's memory.
     while node.wait(Duration::from_millis(100)).is_ok() {
         rig.update_connections();
     }
     Ok(())
+}
+
+/// Frame rate assumed for live cameras whose rate the pipeline file does not give.
+const DEFAULT_LIVE_FPS: f64 = 30.0;
+/// How long the cameras get to deliver their first frames.
+const FIRST_FRAME_TIMEOUT: Duration = Duration::from_secs(15);
+/// How often the cameras' rates, drops and ages are logged.
+const LIVE_REPORT_EVERY: Duration = Duration::from_secs(5);
+
+/// Live cameras: every camera of the calibration started from its `[[cameras]]` source,
+/// frames grouped into frame sets by capture time and published as they are decided. Live
+/// mode gives a camera that stops or falls behind a stall timeout of four frame intervals
+/// (its sets are dropped and counted); replay mode waits for it.
+fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
+    let calibration = args.calibration.as_deref().context("live cameras need `--calibration`")?;
+    let mut rig = Rig::load(calibration)?;
+    if let Some(up) = &args.up {
+        rig.set_up(nalgebra::Vector3::new(up[0], up[1], up[2]))?;
+    }
+    for spec in specs {
+        if !rig.cameras.iter().any(|c| c.name == spec.name) {
+            bail!(
+                "camera `{}` of the pipeline is not in the calibration `{}` (its cameras: {})",
+                spec.name,
+                calibration.display(),
+                rig.cameras.iter().map(|c| format!("`{}`", c.name)).collect::<Vec<_>>().join(", ")
+            );
+        }
+    }
+    let (width, height) = (rig.cameras[0].width, rig.cameras[0].height);
+    let mut cameras = Vec::with_capacity(rig.cameras.len());
+    let mut fps = None;
+    for cam in &rig.cameras {
+        let spec = specs.iter().find(|s| s.name == cam.name).with_context(|| {
+            format!("camera `{}` of the calibration has no `[[cameras]]` source in the pipeline", cam.name)
+        })?;
+        if (cam.width, cam.height) != (width, height) {
+            bail!(
+                "every live camera must have the same size, but `{}` is {}x{} and `{}` {width}x{height}",
+                cam.name,
+                cam.width,
+                cam.height,
+                rig.cameras[0].name
+            );
+        }
+        if let Some([w, h]) = spec.size {
+            if (w, h) != (cam.width, cam.height) {
+                bail!("camera `{}`: `size = [{w}, {h}]` but its calibration is {}x{}", cam.name, cam.width, cam.height);
+            }
+        }
+        let source = CameraSource::parse(&spec.source)
+            .map_err(anyhow::Error::msg)
+            .with_context(|| format!("camera `{}`", cam.name))?;
+        fps = fps.or(spec.fps);
+        cameras.push(LiveCamera::start(&cam.name, &source, cam.width, cam.height, spec.size, spec.fps)?);
+        tracing::info!("camera `{}`: started from `{}`", cam.name, spec.source);
+    }
+    let fps = fps.unwrap_or(DEFAULT_LIVE_FPS);
+    let interval_ns = (1e9 / fps) as u64;
+    // Refused at start: a camera that fails (wrong size, no device) or delivers nothing.
+    let mut sync = FrameSetSync::new(cameras.len(), interval_ns);
+    for (k, camera) in cameras.iter().enumerate() {
+        match camera.frame_timeout(FIRST_FRAME_TIMEOUT) {
+            Some(frame) => sync.push(k, frame),
+            None => bail!(
+                "camera `{}`: {}",
+                camera.name(),
+                camera.failure().unwrap_or_else(|| format!("no frame within {} s", FIRST_FRAME_TIMEOUT.as_secs()))
+            ),
+        }
+    }
+    let names = ServiceNames::new(&args.services);
+    let node = ipc::stage_node("handflow-ingest")?;
+    let up = rig.world_up();
+    tracing::info!("world up {:?} ({})", up.direction.as_slice(), up.source);
+    let rig_output = publish_rig(&node, &names, &rig, fps)?;
+    let frame_set_len = cameras.len() * width as usize * height as usize * 3;
+    let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
+    let stall_ns = match args.mode {
+        Mode::Live => 4 * interval_ns,
+        Mode::Replay => u64::MAX,
+    };
+    let total = args.frames.unwrap_or(u64::MAX);
+    tracing::info!(
+        "publishing live frame sets of {} x {width}x{height} at {fps} fps on `{}` ({} mode)",
+        cameras.len(),
+        frames.name(),
+        args.mode
+    );
+    // Capture times are on the monotonic clock; the wall clock's offset from it dates them.
+    let unix_offset = ipc::unix_now_ns() as i128 - clock_now_ns() as i128;
+    let (mut sequence, mut first_instant) = (0u64, None);
+    let mut last_report = Instant::now();
+    let mut failed = vec![false; cameras.len()];
+    let mut delivered = vec![0u64; cameras.len()];
+    while sequence < total && !ipc::stop_requested() {
+        for (k, camera) in cameras.iter().enumerate() {
+            while let Some(frame) = camera.try_frame() {
+                tracing::trace!("camera `{}`: frame captured at {} ns", camera.name(), frame.capture_ns);
+                sync.push(k, frame);
+            }
+            if !failed[k] {
+                if let Some(problem) = camera.failure() {
+                    tracing::error!("camera `{}` stopped: {problem}", camera.name());
+                    failed[k] = true;
+                }
+            }
+        }
+        // Once every source has ended, what is left is decided at once.
+        let ended = cameras.iter().all(LiveCamera::ended);
+        let (now, stall) = if ended { (u64::MAX, 0) } else { (clock_now_ns(), stall_ns) };
+        while let Some((instant, views)) = sync.next_set(now, stall) {
+            rig_output.update_connections();
+            let first = *first_instant.get_or_insert(instant);
+            let mut sample = frames.publisher.loan_slice(frame_set_len).context("loaning a frame sample")?;
+            for (dst, view) in sample.payload_mut().chunks_exact_mut(frame_set_len / cameras.len()).zip(&views) {
+                dst.copy_from_slice(&view.data);
+            }
+            *sample.user_header_mut() = FrameHeader {
+                protocol_version: PROTOCOL_VERSION,
+                pixel_format: PIXEL_FORMAT_RGB8,
+                sequence,
+                frame: sequence,
+                timestamp_s: (instant - first) as f64 * 1e-9,
+                capture_unix_ns: (instant as i128 + unix_offset).max(0) as u64,
+                rig_version: 1,
+                view_count: cameras.len() as u32,
+                width,
+                height,
+                flags: 0,
+                reserved: 0,
+                payload_len: frame_set_len as u64,
+            };
+            sample.send().with_context(|| format!("sending frame set {sequence}"))?;
+            frames.notify()?;
+            sequence += 1;
+            if sequence >= total {
+                break;
+            }
+        }
+        if last_report.elapsed() >= LIVE_REPORT_EVERY {
+            report_cameras(&cameras, &sync, &mut delivered, last_report.elapsed().as_secs_f64());
+            last_report = Instant::now();
+        }
+        if ended {
+            tracing::info!("every camera's source has ended");
+            break;
+        }
+        if node.wait(Duration::from_millis(2)).is_err() {
+            return Ok(());
+        }
+    }
+    report_cameras(&cameras, &sync, &mut delivered, last_report.elapsed().as_secs_f64());
+    end_stream(&node, &frames, &rig_output, sequence)
+}
+
+/// One log line per camera: its rate over the last `seconds`, frames in sets and dropped,
+/// sets it missed, age of its newest frame. `delivered` holds each camera's count at the
+/// last report.
+fn report_cameras(cameras: &[LiveCamera], sync: &FrameSetSync, delivered: &mut [u64], seconds: f64) {
+    let now = clock_now_ns();
+    for ((camera, stats), before) in cameras.iter().zip(sync.stats()).zip(delivered.iter_mut()) {
+        let count = camera.delivered();
+        let rate = (count - (*before).min(count)) as f64 / seconds.max(1e-3);
+        *before = count;
+        let age = stats
+            .last_capture_ns
+            .map_or("never".to_string(), |t| format!("{:.0} ms ago", now.saturating_sub(t) as f64 * 1e-6));
+        tracing::info!(
+            "camera `{}`: {rate:.1} frames/s, {count} delivered, {} in frame sets, {} dropped ({} in the hand-over), \
+             {} sets missed; last frame {age}",
+            camera.name(),
+            stats.used,
+            stats.dropped + camera.handover_dropped(),
+            camera.handover_dropped(),
+            stats.missed_sets,
+        );
+    }
 }
 
 fn publish_rig(

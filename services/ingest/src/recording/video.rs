@@ -69,7 +69,7 @@ pub struct VideoProbe {
 }
 
 /// Starts GStreamer once per process and makes sure no hardware decoder is autoplugged.
-fn init() -> Result<(), String> {
+pub(crate) fn init_gstreamer() -> Result<(), String> {
     static START: Once = Once::new();
     static FAILED: Mutex<Option<String>> = Mutex::new(None);
     START.call_once(|| match gst::init() {
@@ -166,7 +166,7 @@ fn stream_time(sample: &gst::Sample, pts: gst::ClockTime) -> gst::ClockTime {
 /// Lists a video's frames from its demuxed packets, without decoding: size, codec and the
 /// presentation time of every frame.
 pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
-    init().map_err(|problem| VideoError::Open { path: path.to_owned(), problem })?;
+    init_gstreamer().map_err(|problem| VideoError::Open { path: path.to_owned(), problem })?;
     let open_error = |problem: String| VideoError::Open { path: path.to_owned(), problem };
     if !path.is_file() {
         return Err(open_error("no such file".into()));
@@ -278,7 +278,7 @@ impl std::fmt::Debug for VideoReader {
 impl VideoReader {
     /// A decoder for `path`, whose frames the probe listed.
     pub fn open(path: &Path, probe: &VideoProbe) -> Result<VideoReader, VideoError> {
-        init().map_err(|problem| VideoError::Open { path: path.to_owned(), problem })?;
+        init_gstreamer().map_err(|problem| VideoError::Open { path: path.to_owned(), problem })?;
         let open_error = |problem: String| VideoError::Open { path: path.to_owned(), problem };
         let pipeline = gst::Pipeline::new();
         // Formats our conversion reads; videoconvert passes them through untouched and turns

@@ -1,0 +1,171 @@
+//! End-to-end tests of live cameras: the real launcher and stage processes over iceoryx2,
+//! cameras that are real GStreamer sources needing no device (videos played at their own
+//! rate, as a camera delivers them, and GStreamer's live test pattern).
+
+#![allow(clippy::unwrap_used)]
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use handflow::eval::tracks::{evaluate_tracks, read_tracks};
+use handflow_e2e::{binaries_dir, render_preset, unique_prefix};
+use handflow_ingest::Recording;
+
+static ONE_PIPELINE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn have_ffmpeg() -> bool {
+    let found = Command::new("ffmpeg").arg("-version").output().is_ok_and(|o| o.status.success());
+    if !found {
+        eprintln!("skipped: ffmpeg (the test's encoder) is not installed");
+    }
+    found
+}
+
+/// Runs `handflow run --pipeline FILE`, returning whether it succeeded and its log.
+fn run_pipeline(file: &Path, timeout: Duration) -> (bool, String) {
+    let mut child: Child = Command::new(binaries_dir().join("handflow"))
+        .arg("run")
+        .arg(file)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut text = String::new();
+        let _ = stderr.read_to_string(&mut text);
+        text
+    });
+    let started = Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if started.elapsed() > timeout {
+            let _ = child.kill();
+            panic!("the pipeline did not end within {timeout:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    (status.success(), reader.join().unwrap())
+}
+
+/// Each camera's rendered frames as an H.264 video at `fps`.
+fn encode_cameras(rec: &Path, fps: u32) -> Vec<(String, PathBuf)> {
+    let rig = Recording::open(rec).unwrap().rig().clone();
+    rig.cameras
+        .iter()
+        .map(|cam| {
+            let video = rec.join(format!("{}.mp4", cam.name));
+            let status = Command::new("ffmpeg")
+                .args(["-loglevel", "error", "-y", "-framerate", &fps.to_string(), "-i"])
+                .arg(rec.join(&cam.name).join("%06d.png"))
+                .args(["-c:v", "libx264", "-crf", "12", "-pix_fmt", "yuv420p"])
+                .arg(&video)
+                .status()
+                .unwrap();
+            assert!(status.success(), "ffmpeg encoding {}", video.display());
+            (cam.name.clone(), video)
+        })
+        .collect()
+}
+
+#[test]
+fn cameras_playing_videos_at_their_rate_are_grouped_by_capture_time_and_tracked() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let _one = ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 60u32;
+    let rec = render_preset(dir.path(), "signer-3cam", frames, Some((320, 240)));
+    let fps = 30;
+    let videos = encode_cameras(&rec, fps);
+    let out = dir.path().join("trajectories.jsonl");
+    let mut pipeline = format!(
+        "mode = \"live\"\ncalibration = \"{}\"\nout = \"{}\"\nservices = \"{}\"\n",
+        rec.join("rig.toml").display(),
+        out.display(),
+        unique_prefix("live-videos")
+    );
+    for (name, video) in &videos {
+        pipeline.push_str(&format!(
+            "\n[[cameras]]\nname = \"{name}\"\nsource = \"file://{}\"\nfps = {fps}\n",
+            video.display()
+        ));
+    }
+    let file = dir.path().join("live.toml");
+    std::fs::write(&file, pipeline).unwrap();
+    let (ok, log) = run_pipeline(&file, Duration::from_secs(240));
+    assert!(ok, "the run failed:\n{log}");
+    assert!(log.contains("every camera's source has ended"), "{log}");
+    for (name, _) in &videos {
+        assert!(log.contains(&format!("camera `{name}`: started from `file://")), "{log}");
+        assert!(log.contains(&format!("camera `{name}`: ")) && log.contains("frames/s"), "per-camera report:\n{log}");
+    }
+
+    let records = read_tracks(&out).unwrap();
+    assert!(records.len() >= 20, "{} samples of {frames} frames:\n{log}", records.len());
+    // Capture times are the videos' presentation times on the shared clock, so each
+    // published set's time lands on one of the videos' frames.
+    let mut mapped = records.clone();
+    for r in &mut mapped {
+        let position = r.t * f64::from(fps);
+        assert!((position - position.round()).abs() < 0.3, "set at {} s is between frames", r.t);
+        r.frame = position.round() as u64;
+    }
+    let numbers: Vec<u64> = mapped.iter().map(|r| r.frame).collect();
+    assert!(numbers.windows(2).all(|p| p[0] < p[1]), "frames in order, once each: {numbers:?}");
+    let scores = evaluate_tracks(&Recording::open(&rec).unwrap(), &mapped).unwrap();
+    assert!(scores.head.agreement >= 0.9, "{scores:?}");
+    assert!(scores.left_hand.agreement >= 0.8 && scores.right_hand.agreement >= 0.8, "{scores:?}");
+}
+
+#[test]
+fn a_camera_delivering_another_size_than_its_calibration_is_refused_at_start_naming_it() {
+    let _one = ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let rec = render_preset(dir.path(), "signer-3cam", 2, Some((320, 240)));
+    let rig = Recording::open(&rec).unwrap().rig().clone();
+    let mut pipeline = format!(
+        "mode = \"live\"\ncalibration = \"{}\"\nservices = \"{}\"\n",
+        rec.join("rig.toml").display(),
+        unique_prefix("live-size")
+    );
+    for (k, cam) in rig.cameras.iter().enumerate() {
+        // The last camera delivers 160x120 instead of its calibrated 320x240.
+        let (w, h) = if k + 1 == rig.cameras.len() { (160, 120) } else { (320, 240) };
+        pipeline.push_str(&format!(
+            "\n[[cameras]]\nname = \"{}\"\nsource = \"gst:videotestsrc is-live=true pattern=ball ! \
+             video/x-raw,width={w},height={h},framerate=30/1\"\nfps = 30\n",
+            cam.name
+        ));
+    }
+    let file = dir.path().join("live.toml");
+    std::fs::write(&file, pipeline).unwrap();
+    let (ok, log) = run_pipeline(&file, Duration::from_secs(60));
+    assert!(!ok, "a camera of the wrong size must stop the run:\n{log}");
+    let last = &rig.cameras[rig.cameras.len() - 1].name;
+    assert!(log.contains(&format!("camera `{last}`")) && log.contains("160x120") && log.contains("320x240"), "{log}");
+}
+
+#[test]
+fn a_pipeline_naming_a_camera_the_calibration_lacks_is_refused_naming_both() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = render_preset(dir.path(), "signer-3cam", 2, Some((160, 120)));
+    let pipeline = format!(
+        "mode = \"live\"\ncalibration = \"{}\"\nservices = \"{}\"\n\n[[cameras]]\nname = \"front\"\nsource = \
+         \"gst:videotestsrc is-live=true\"\n",
+        rec.join("rig.toml").display(),
+        unique_prefix("live-name")
+    );
+    let file = dir.path().join("live.toml");
+    std::fs::write(&file, pipeline).unwrap();
+    let (ok, log) = run_pipeline(&file, Duration::from_secs(60));
+    assert!(!ok, "{log}");
+    assert!(log.contains("camera `front`") && log.contains("not in the calibration"), "{log}");
+}
