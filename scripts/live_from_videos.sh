@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Runs `handflow run` on live cameras that play a recording's videos at their own rate (as
+# cameras deliver them), then scores the trajectories by capture time (a live run numbers its
+# frame sets itself and drops what it cannot keep up with). A recording of PNG folders (a
+# rendered preset) is encoded to H.264 first (ffmpeg). Prints the run's end-of-stream lines
+# (samples, frames lost, glass-to-trajectory latency) and the scores.
+# Usage: scripts/live_from_videos.sh [RECORDING_DIR] [FPS]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+rec=$(realpath "${1:-../shared/data/real/caliscope-hands}")
+fps=${2:-6}
+if [ ! -d "$rec" ]; then
+    echo "skipped: recording $rec not found" >&2
+    exit 0
+fi
+bin=${HANDFLOW_BIN:-target/release/handflow}
+[ -x "$bin" ] || cargo build --release -q --workspace
+out=$(mktemp -d)
+trap 'rm -rf "$out"' EXIT
+if [ -f "$rec/camera_array.toml" ]; then calibration=$rec/camera_array.toml; else calibration=$rec/rig.toml; fi
+printf 'mode = "live"\ncalibration = "%s"\nout = "%s/tracks.jsonl"\nservices = "live-videos-%s"\n' \
+    "$calibration" "$out" "$$" >"$out/live.toml"
+for video in "$rec"/*.mp4; do
+    [ -e "$video" ] || break
+    name=$(basename "$video" .mp4)
+    printf '\n[[cameras]]\nname = "%s"\nsource = "file://%s"\nfps = %s\n' "$name" "$video" "$fps" >>"$out/live.toml"
+done
+if ! grep -q cameras "$out/live.toml"; then
+    for dir in "$rec"/cam*/; do
+        name=$(basename "$dir")
+        ffmpeg -loglevel error -y -framerate "$fps" -i "$dir/%06d.png" -c:v libx264 -crf 12 -pix_fmt yuv420p "$out/$name.mp4"
+        printf '\n[[cameras]]\nname = "%s"\nsource = "file://%s/%s.mp4"\nfps = %s\n' "$name" "$out" "$name" "$fps" >>"$out/live.toml"
+    done
+fi
+"$bin" run "$out/live.toml" 2>"$out/run.log" >/dev/null
+grep -E "end of stream:|stream ended|frame set\(s\) dropped|frames/s" "$out/run.log" | sed 's/^.*Z *//' | tail -8
+python3 - "$out" "$fps" <<'PY'
+import json, sys
+out, fps = sys.argv[1], float(sys.argv[2])
+with open(out + "/mapped.jsonl", "w") as f:
+    for line in open(out + "/tracks.jsonl"):
+        r = json.loads(line)
+        r["frame"] = round(r["t"] * fps)
+        f.write(json.dumps(r) + "\n")
+PY
+if [ -f "$rec/reference.json" ]; then
+    "$bin" eval tracks --recording "$rec" --tracks "$out/mapped.jsonl" --reference "$rec/reference.json" | tail -4
+else
+    "$bin" eval tracks --recording "$rec" --tracks "$out/mapped.jsonl" | tail -4
+fi
