@@ -169,3 +169,64 @@ fn a_pipeline_naming_a_camera_the_calibration_lacks_is_refused_naming_both() {
     assert!(!ok, "{log}");
     assert!(log.contains("camera `front`") && log.contains("not in the calibration"), "{log}");
 }
+
+#[test]
+fn a_lossless_recording_of_live_cameras_replays_to_the_live_runs_trajectories_frame_for_frame() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let _one = ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let rec = render_preset(dir.path(), "signer-3cam", 45, Some((320, 240)));
+    let videos = encode_cameras(&rec, 30);
+    let live_out = dir.path().join("live.jsonl");
+    // Replay mode: the cameras drop what the pipeline cannot take, but every frame set
+    // published is tracked and recorded.
+    let mut pipeline = format!(
+        "mode = \"replay\"\ncalibration = \"{}\"\nout = \"{}\"\nservices = \"{}\"\n",
+        rec.join("rig.toml").display(),
+        live_out.display(),
+        unique_prefix("live-record")
+    );
+    for (name, video) in &videos {
+        pipeline.push_str(&format!(
+            "\n[[cameras]]\nname = \"{name}\"\nsource = \"file://{}\"\nfps = 30\n",
+            video.display()
+        ));
+    }
+    let file = dir.path().join("live.toml");
+    std::fs::write(&file, pipeline).unwrap();
+    let recorded = dir.path().join("session");
+    let mut child = Command::new(binaries_dir().join("handflow"))
+        .args(["record", "--pipeline"])
+        .arg(&file)
+        .arg("--out")
+        .arg(&recorded)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut log = String::new();
+    child.stderr.take().unwrap().read_to_string(&mut log).unwrap();
+    assert!(child.wait().unwrap().success(), "the recording run failed:\n{log}");
+    assert!(log.contains("recorded ") && log.contains("frame sets into"), "{log}");
+
+    let live = std::fs::read_to_string(&live_out).unwrap();
+    assert!(live.lines().count() >= 10, "{} samples:\n{log}", live.lines().count());
+    let replay_out = dir.path().join("replay.jsonl");
+    let status = Command::new(binaries_dir().join("handflow"))
+        .args(["track", "--recording"])
+        .arg(&recorded)
+        .arg("--out")
+        .arg(&replay_out)
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let replay = std::fs::read_to_string(&replay_out).unwrap();
+    assert_eq!(replay.lines().count(), live.lines().count(), "one trajectory sample per recorded frame set");
+    for (k, (a, b)) in live.lines().zip(replay.lines()).enumerate() {
+        assert_eq!(a, b, "sample {k}: the replay of the lossless recording differs from the live run");
+    }
+}

@@ -52,6 +52,9 @@ enum Command {
     /// Print what flows on a running pipeline's service (rig, frames, particles, clusters,
     /// trajectories).
     Tap(TapArgs),
+    /// Run a pipeline of live cameras and write what they deliver as a recording that `run`
+    /// and `track` replay (lossless unless `--quality`).
+    Record(RecordArgs),
     /// The scene-flow demo: both Middlebury Teddy layouts with the default engine.
     FlowDemo,
     /// Inspect a calibration (any supported format) or convert it to handflow's rig TOML.
@@ -60,6 +63,22 @@ enum Command {
     /// Write a recording (videos or images) in the image-folder layout: rig.toml, frames.csv,
     /// one PNG folder per camera.
     Import(ImportArgs),
+}
+
+#[derive(Args, Debug)]
+struct RecordArgs {
+    /// Pipeline file with the live cameras (`[[cameras]]`) and their `calibration`.
+    #[arg(long)]
+    pipeline: PathBuf,
+    /// Output folder (new or empty): rig.toml, frames.csv, one video per camera.
+    #[arg(long)]
+    out: PathBuf,
+    /// Stop after this many seconds (default: until the sources end or Ctrl-C).
+    #[arg(long)]
+    seconds: Option<f64>,
+    /// H.264 at this quantizer (0 best, 51 worst) instead of lossless FFV1.
+    #[arg(long)]
+    quality: Option<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -508,7 +527,7 @@ pub fn main() -> ExitCode {
     let cli = Cli::parse();
     // The launcher reports what its stages do; other commands only warn.
     init_logging(match &cli.command {
-        None | Some(Command::Run(_)) => "info",
+        None | Some(Command::Run(_)) | Some(Command::Record(_)) => "info",
         // The few state changes a user of new footage needs (faces found or lost, how much
         // of each image is skin, why tracks have not started), without per-frame lines.
         Some(Command::Track(_) | Command::Inspect(_)) => TRACKER_LOG,
@@ -551,6 +570,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Rig(command)) => crate::commands::rig::run(&command),
         Some(Command::Import(args)) => import(&args),
         Some(Command::Run(args)) => run_streaming(&args),
+        Some(Command::Record(args)) => record_live(&args),
         Some(Command::Tap(args)) => {
             crate::commands::tap::tap(&args.service, &args.services, args.count, &mut std::io::stdout().lock())
         }
@@ -650,6 +670,32 @@ fn bench_pipeline(args: &BenchPipelineArgs) -> Result<()> {
 /// Where the demo renders its recording and writes its trajectories.
 const DEMO_RECORDING: &str = "out/signer-3cam";
 const DEMO_TRAJECTORIES: &str = "out/signer-3cam-trajectories.jsonl";
+
+/// `handflow record`: the pipeline file's live cameras through the whole pipeline (its
+/// trajectories go where the file says), every frame set also written to `--out`.
+fn record_live(args: &RecordArgs) -> Result<()> {
+    use crate::commands::launcher::{run_pipeline, Pipeline};
+    let mut p = Pipeline::load(&args.pipeline)?;
+    if p.cameras.is_empty() {
+        anyhow::bail!("pipeline `{}` has no live cameras (`[[cameras]]`) to record", args.pipeline.display());
+    }
+    p.record = Some(args.out.clone());
+    p.record_quality = args.quality.or(p.record_quality);
+    if let Some(seconds) = args.seconds {
+        let fps = p.cameras.iter().find_map(|c| c.fps).unwrap_or(30.0);
+        p.frames = Some((seconds * fps).round().max(1.0) as u64);
+    }
+    let report = run_pipeline(&p)?;
+    if !report.completed {
+        anyhow::bail!("the recording run was interrupted; what was recorded is in `{}`", args.out.display());
+    }
+    eprintln!(
+        "recorded into `{}` in {:.1} s; replay with `handflow run --recording {0}` or `handflow track --recording {0}`",
+        args.out.display(),
+        report.seconds
+    );
+    Ok(())
+}
 
 /// `handflow run`: the pipeline from the file and flags; without a source, the demo
 /// (`signer-3cam`, rendered first if need be, replayed through the four processes and

@@ -13,6 +13,8 @@
 //! # source = "v4l2:///dev/video0"  # rtsp://, http(s)://, file:///video.mp4, gst:<GStreamer source>
 //! # size = [1280, 720]             # asked of the device (default: the calibration's)
 //! # fps = 30                       # asked of the device
+//! # record = "out/session"         # live cameras: also write what they deliver as a recording
+//! # record_quality = 18            # H.264 at this quantizer instead of lossless FFV1
 //! out = "out/trajectories.jsonl"   # the JSON Lines file the publisher writes
 //! pace = "max"                     # or "recorded" (default: max in replay, recorded in live)
 //! loop = false                     # replay the source forever
@@ -50,6 +52,10 @@ pub struct Pipeline {
     pub preset: Option<String>,
     /// Live cameras (`[[cameras]]`), placed by `calibration`.
     pub cameras: Vec<handflow_ingest::live::LiveCameraSpec>,
+    /// Live cameras: a folder (new or empty) where every frame set is also recorded.
+    pub record: Option<PathBuf>,
+    /// Recorded videos as H.264 at this quantizer instead of lossless.
+    pub record_quality: Option<u32>,
     /// JSON Lines file of the trajectories.
     pub out: Option<PathBuf>,
     /// `max` or `recorded`.
@@ -83,6 +89,8 @@ impl Default for Pipeline {
             recording: None,
             preset: None,
             cameras: Vec::new(),
+            record: None,
+            record_quality: None,
             out: None,
             pace: None,
             looped: false,
@@ -104,7 +112,7 @@ impl Pipeline {
         let text = std::fs::read_to_string(path).with_context(|| format!("reading pipeline `{}`", path.display()))?;
         let mut p: Pipeline = toml::from_str(&text).with_context(|| format!("pipeline `{}`", path.display()))?;
         let base = path.parent().unwrap_or(Path::new(""));
-        for file in [&mut p.recording, &mut p.out, &mut p.calibration].into_iter().flatten() {
+        for file in [&mut p.recording, &mut p.out, &mut p.calibration, &mut p.record].into_iter().flatten() {
             if file.is_relative() {
                 *file = base.join(&*file);
             }
@@ -126,6 +134,12 @@ impl Pipeline {
             0 => bail!("no source: give `recording` (a folder), `preset` (a synthetic scene) or `[[cameras]]` (live)"),
             1 => {}
             _ => bail!("fields `recording`, `preset` and `[[cameras]]`: give one source, not several"),
+        }
+        if self.record.is_some() && self.cameras.is_empty() {
+            bail!("`record` needs live cameras (`[[cameras]]`): a recording or preset is already recorded");
+        }
+        if self.record_quality.is_some_and(|q| q > 51) {
+            bail!("field `record_quality`: an H.264 quantizer, 0 (best) to 51");
         }
         if !self.cameras.is_empty() && self.calibration.is_none() {
             bail!("`[[cameras]]` need `calibration`: the file that says where each camera is");
@@ -229,6 +243,12 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     }
     if !p.cameras.is_empty() {
         ingest_args.extend(["--cameras-json".into(), serde_json::to_string(&p.cameras)?]);
+    }
+    if let Some(dir) = &p.record {
+        ingest_args.extend(["--record".into(), dir.display().to_string()]);
+    }
+    if let Some(q) = p.record_quality {
+        ingest_args.extend(["--record-quality".into(), q.to_string()]);
     }
     if let Some(pace) = &p.pace {
         ingest_args.extend(["--pace".into(), pace.clone()]);

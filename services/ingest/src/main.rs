@@ -6,7 +6,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use handflow_ingest::live::{camera::clock_now_ns, CameraSource, FrameSetSync, LiveCamera, LiveCameraSpec};
+use handflow_ingest::live::{
+    camera::clock_now_ns, CameraSource, FrameSetSync, LiveCamera, LiveCameraSpec, RecordingWriter,
+};
 use handflow_ingest::synthetic::{Renderer, SceneSpec};
 use handflow_ingest::{OpenOptions, Recording};
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
@@ -23,6 +25,14 @@ struct Args {
     /// them); their calibration comes from `--calibration`.
     #[arg(long, conflicts_with = "preset", requires = "calibration")]
     cameras_json: Option<String>,
+    /// Live cameras: also write every published frame set as a recording in this folder
+    /// (new or empty), which `handflow run` and `handflow track` replay.
+    #[arg(long, requires = "cameras_json")]
+    record: Option<PathBuf>,
+    /// Quality of the recorded videos: H.264 at this quantizer (0 best, 51 worst); without
+    /// it, lossless (FFV1).
+    #[arg(long, requires = "record")]
+    record_quality: Option<u32>,
     /// Built-in synthetic scene to render live instead (signer-3cam, hands-cross, ...).
     #[arg(long)]
     preset: Option<String>,
@@ -393,6 +403,31 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         frames.name(),
         args.mode
     );
+    // Replay mode loses nothing downstream: the flow stage listens before a set goes out
+    // (the cameras meanwhile drop what they deliver, counted in their reports).
+    let wait_for_flow = || -> bool {
+        loop {
+            rig_output.update_connections();
+            if frames.subscribers() > 0 {
+                frames.update_connections();
+                return true;
+            }
+            if node.wait(Duration::from_millis(5)).is_err() {
+                return false;
+            }
+        }
+    };
+    if args.mode == Mode::Replay && !wait_for_flow() {
+        return Ok(());
+    }
+    let mut recorder = match &args.record {
+        Some(dir) => {
+            let writer = RecordingWriter::create(dir, &rig, fps, args.record_quality)?;
+            tracing::info!("recording every frame set into `{}`", dir.display());
+            Some(writer)
+        }
+        None => None,
+    };
     // Capture times are on the monotonic clock; the wall clock's offset from it dates them.
     let unix_offset = ipc::unix_now_ns() as i128 - clock_now_ns() as i128;
     let (mut sequence, mut first_instant) = (0u64, None);
@@ -417,6 +452,9 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         let (now, stall) = if ended { (u64::MAX, 0) } else { (clock_now_ns(), stall_ns) };
         while let Some((instant, views)) = sync.next_set(now, stall) {
             rig_output.update_connections();
+            if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
+                return Ok(());
+            }
             let first = *first_instant.get_or_insert(instant);
             let mut sample = frames.publisher.loan_slice(frame_set_len).context("loaning a frame sample")?;
             for (dst, view) in sample.payload_mut().chunks_exact_mut(frame_set_len / cameras.len()).zip(&views) {
@@ -437,6 +475,10 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
                 reserved: 0,
                 payload_len: frame_set_len as u64,
             };
+            if let Some(writer) = recorder.as_mut() {
+                let header = sample.user_header();
+                writer.write_set(header.frame, header.timestamp_s, sample.payload())?;
+            }
             sample.send().with_context(|| format!("sending frame set {sequence}"))?;
             frames.notify()?;
             sequence += 1;
@@ -457,6 +499,11 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         }
     }
     report_cameras(&cameras, &sync, &mut delivered, last_report.elapsed().as_secs_f64());
+    if let Some(writer) = recorder {
+        let written = writer.written();
+        let dir = writer.finish()?;
+        tracing::info!("recorded {written} frame sets into `{}`", dir.display());
+    }
     end_stream(&node, &frames, &rig_output, sequence)
 }
 

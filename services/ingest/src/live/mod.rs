@@ -4,11 +4,13 @@
 
 pub mod camera;
 pub mod sync;
+pub mod writer;
 
 use serde::{Deserialize, Serialize};
 
 pub use camera::{CameraSource, LiveCamera, LiveCameraError};
 pub use sync::{CameraSyncStats, FrameSetSync, TimedFrame};
+pub use writer::{RecordingWriter, WriteError};
 
 /// One camera of a live pipeline, as the pipeline file names it:
 ///
