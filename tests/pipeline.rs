@@ -400,7 +400,7 @@ fn a_malformed_frame_set_is_skipped_with_a_logged_error_and_the_stream_goes_on()
             width: 160,
             height: 120,
             flags: 0,
-            reserved: 0,
+            missing_views: 0,
             payload_len: rec.frame_set_len() as u64,
         };
         // A header that disagrees with its payload: one byte more than it carries.

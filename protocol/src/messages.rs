@@ -141,13 +141,19 @@ pub struct FrameHeader {
     pub height: u32,
     /// [`END_OF_STREAM`] or 0.
     pub flags: u32,
-    /// Reserved, 0.
-    pub reserved: u32,
+    /// Bit `k` set: camera `k` delivered no view for this set (a live camera that stopped or
+    /// fell behind); its bytes in the payload are zero and carry nothing. 0 for a full set.
+    pub missing_views: u32,
     /// Payload length, bytes.
     pub payload_len: u64,
 }
 
 impl FrameHeader {
+    /// Whether camera `k`'s view is in the set.
+    pub fn has_view(&self, k: usize) -> bool {
+        k >= 32 || self.missing_views & (1 << k) == 0
+    }
+
     /// Bytes of one view.
     pub fn view_len(&self) -> usize {
         self.width as usize * self.height as usize * 3
@@ -188,6 +194,16 @@ impl FrameHeader {
         }
         if !self.timestamp_s.is_finite() {
             return err("timestamp_s", format!("is {}", self.timestamp_s));
+        }
+        let all = if self.view_count >= 32 { u32::MAX } else { (1u32 << self.view_count) - 1 };
+        if self.missing_views & !all != 0 || self.missing_views == all {
+            return err(
+                "missing_views",
+                format!(
+                    "{:#b} for {} views: names a view beyond them or leaves none",
+                    self.missing_views, self.view_count
+                ),
+            );
         }
         Ok(())
     }
@@ -494,6 +510,18 @@ mod tests {
         huge.width = u32::MAX;
         huge.height = u32::MAX;
         assert!(huge.validate(72).is_err());
+    }
+
+    #[test]
+    fn missing_views_must_name_views_of_the_set_and_leave_one() {
+        let mut h = frame_header(3, 4, 2);
+        h.missing_views = 0b010;
+        h.validate(72).unwrap();
+        assert!(h.has_view(0) && !h.has_view(1) && h.has_view(2));
+        h.missing_views = 0b1000;
+        assert!(matches!(h.validate(72).unwrap_err(), MessageError::Field { field: "missing_views", .. }));
+        h.missing_views = 0b111;
+        assert!(matches!(h.validate(72).unwrap_err(), MessageError::Field { field: "missing_views", .. }));
     }
 
     #[test]

@@ -52,6 +52,14 @@ pub enum FlowError {
         /// Actual byte count.
         got: usize,
     },
+    /// A frame set lacks the reference camera's view, which every ray starts from.
+    #[error("frame {frame}: the reference camera `{camera}` has no view; the set cannot be estimated")]
+    ReferenceMissing {
+        /// Frame number (0-based, in push order).
+        frame: u64,
+        /// The reference camera's name.
+        camera: String,
+    },
 }
 
 /// The dense per-ray output of the reference view (row-major), on the finest ray grid: that of
@@ -110,6 +118,9 @@ pub struct SceneFlowEngine {
     space: SearchSpace,
     /// Three frame slots of per-camera pyramids; `ring_newest` is the last pushed.
     ring: [Vec<Pyramid>; 3],
+    /// `present[slot][camera]`: whether the camera delivered a view for the frame in `slot`
+    /// (a live camera that stopped leaves its view out; its images are not matched against).
+    present: [Vec<bool>; 3],
     ring_len: usize,
     ring_newest: usize,
     frames_pushed: u64,
@@ -217,6 +228,7 @@ impl SceneFlowEngine {
             optical_axis,
             space,
             ring: Default::default(),
+            present: Default::default(),
             ring_len: 0,
             ring_newest: 2,
             frames_pushed: 0,
@@ -339,8 +351,20 @@ impl SceneFlowEngine {
     /// or the previous one with forwards/backwards (one frame late). Frames that complete
     /// nothing yet return `None`.
     pub fn push_frame(&mut self, views: &[&[u8]]) -> Result<Option<&DenseField>, FlowError> {
+        self.push_frame_partial(views, 0)
+    }
+
+    /// [`SceneFlowEngine::push_frame`] for a set some cameras gave no view for: bit `k` of
+    /// `missing` set means camera `k`'s view (zero bytes) is left out of every likelihood and
+    /// of the skin term, for as long as this frame is in the window. The reference camera
+    /// must be present.
+    pub fn push_frame_partial(&mut self, views: &[&[u8]], missing: u32) -> Result<Option<&DenseField>, FlowError> {
         let started = Instant::now();
         let frame = self.frames_pushed;
+        let has = |k: usize| k >= 32 || missing & (1 << k) == 0;
+        if !has(self.reference) {
+            return Err(FlowError::ReferenceMissing { frame, camera: self.cameras[self.reference].name.clone() });
+        }
         if views.len() != self.cameras.len() {
             return Err(FlowError::ViewCount { frame, expected: self.cameras.len(), got: views.len() });
         }
@@ -371,13 +395,18 @@ impl SceneFlowEngine {
         pyramids.par_iter_mut().zip(self.cameras.par_iter()).zip(views.par_iter()).for_each(|((pyr, cam), view)| {
             pyr.rebuild(cam.width as usize, cam.height as usize, view, levels, local, finest);
         });
+        self.present[slot] = (0..self.cameras.len()).map(has).collect();
         if self.config.coverage == Coverage::Skin {
             let maps = &mut self.skin_maps[slot];
             maps.resize_with(self.cameras.len(), Vec::new);
-            maps.par_iter_mut().zip(self.skin_models.par_iter()).zip(views.par_iter()).for_each(
-                |((map, model), view)| {
+            let present = &self.present[slot];
+            maps.par_iter_mut().zip(self.skin_models.par_iter()).zip(views.par_iter()).enumerate().for_each(
+                |(k, ((map, model), view))| {
                     map.clear();
-                    map.extend(view.chunks_exact(3).map(|p| model.log_ratio([p[0], p[1], p[2]])));
+                    // A missing view's map stays empty: it says nothing about skin.
+                    if present[k] {
+                        map.extend(view.chunks_exact(3).map(|p| model.log_ratio([p[0], p[1], p[2]])));
+                    }
                 },
             );
         }
@@ -770,6 +799,9 @@ impl SceneFlowEngine {
         for (k, &slot) in window.slots.iter().enumerate().take(window.len) {
             let offset = k as f32 - 1.0;
             for (q, pyr) in self.ring[slot].iter().enumerate() {
+                if !self.present[slot].get(q).copied().unwrap_or(true) {
+                    continue;
+                }
                 images[n_images] = MatchImage {
                     offset,
                     image: pyr.matching_level(level),
@@ -1049,7 +1081,8 @@ impl SkinTerm<'_> {
             // `round`, needs no libm call without SSE4.1).
             let (x, y) = (u + 0.5, v + 0.5);
             if x > 0.0 && y > 0.0 && x < cam.width as f32 && y < cam.height as f32 {
-                let hq = map[y as usize * cam.width as usize + x as usize];
+                // A camera without a view this frame has an empty map and no say.
+                let Some(&hq) = map.get(y as usize * cam.width as usize + x as usize) else { continue };
                 h += hq;
                 worst = worst.min(hq);
                 seen += 1;
@@ -1456,6 +1489,40 @@ mod tests {
         let k = Matrix3::new(50.0, 0.0, 15.5, 0.0, 50.0, 11.5, 0.0, 0.0, 1.0);
         Camera::new(name, 32, 24, k, Distortion::default(), Rotation3::identity(), Vector3::new(-x, 0.0, 0.0))
             .expect("valid camera")
+    }
+
+    /// A 32x24 RGB view of a texture moved `shift` pixels to the right.
+    fn textured_view(shift: usize, seed: u32) -> Vec<u8> {
+        (0..24 * 32)
+            .flat_map(|i| {
+                let (x, y) = ((i % 32 + 64 - shift) as u32, (i / 32) as u32);
+                let v =
+                    (x.wrapping_mul(2_654_435_761) ^ y.wrapping_mul(40_503) ^ seed).wrapping_mul(2_246_822_519) >> 24;
+                [v as u8, (v as u8).wrapping_mul(3), 255 - v as u8]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_camera_missing_from_every_set_is_as_if_the_rig_had_no_such_camera() {
+        let three = vec![camera("ref", 0.0), camera("a", 0.1), camera("gone", -0.1)];
+        let config = EngineConfig { pyramid_levels: 2, coarse_extra_loops: 2, ..EngineConfig::default() };
+        let mut partial = SceneFlowEngine::new(config.clone(), three.clone(), 0).unwrap();
+        let mut whole = SceneFlowEngine::new(config, three[..2].to_vec(), 0).unwrap();
+        let black = vec![0u8; 32 * 24 * 3];
+        for f in 0..3 {
+            let (r, a) = (textured_view(f, 1), textured_view(f + 2, 1));
+            let with_gap = partial.push_frame_partial(&[&r, &a, &black], 0b100).unwrap().cloned();
+            let without = whole.push_frame(&[&r, &a]).unwrap().cloned();
+            assert_eq!(with_gap.is_some(), without.is_some());
+            if let (Some(x), Some(y)) = (with_gap, without) {
+                assert_eq!(x.depth, y.depth, "frame {f}");
+                assert_eq!(x.velocity, y.velocity, "frame {f}");
+                assert_eq!(x.confidence, y.confidence, "frame {f}");
+            }
+        }
+        let e = partial.push_frame_partial(&[&black, &black, &black], 0b001).unwrap_err().to_string();
+        assert!(e.contains("reference camera `ref`"), "{e}");
     }
 
     /// Skin term over a reference and two other views whose skin maps are uniform.

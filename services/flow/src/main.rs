@@ -128,7 +128,15 @@ fn run(args: Args) -> Result<()> {
             timestamp_s: header.timestamp_s,
             capture_unix_ns: header.capture_unix_ns,
         };
-        let pushed = stream.push(meta, sample.payload(), &mut publish);
+        if !header.has_view(reference) {
+            tracing::error!(
+                "skipping frame set {}: the reference camera `{}` has no view in it",
+                header.sequence,
+                rig.cameras[reference].name
+            );
+            return Ok(Next::Continue);
+        }
+        let pushed = stream.push_partial(meta, sample.payload(), header.missing_views, &mut publish);
         drop(sample);
         pushed.with_context(|| format!("frame set {}", header.sequence))?;
         Ok(Next::Continue)

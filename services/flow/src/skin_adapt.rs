@@ -114,10 +114,21 @@ impl SkinAdapter {
 
     /// Detects faces in every view and adapts now. Returns whether any model changed.
     pub fn adapt_now(&mut self, views: &[&[u8]]) -> bool {
+        self.adapt_now_partial(views, 0)
+    }
+
+    /// [`SkinAdapter::adapt_now`] on a set some cameras gave no view for (bit `k` of
+    /// `missing`: camera `k`): those are not searched and their models keep their state.
+    pub fn adapt_now_partial(&mut self, views: &[&[u8]], missing: u32) -> bool {
         let started = std::time::Instant::now();
         let full = self.stats.rounds.is_multiple_of(FULL_SEARCH_EVERY);
+        let absent = |k: usize| k < 32 && missing & (1 << k) != 0;
         let mut found = Vec::with_capacity(self.cameras.len());
-        for ((view, cam), last) in views.iter().zip(&self.cameras).zip(&self.last) {
+        for (k, ((view, cam), last)) in views.iter().zip(&self.cameras).zip(&self.last).enumerate() {
+            if absent(k) {
+                found.push(Vec::new());
+                continue;
+            }
             // On binned pixels where the face's size is known: the face last seen here, else
             // the face placed in 3D seen from this camera (a second person twice as far away
             // may be missed; the signer is the nearest face).
@@ -156,6 +167,9 @@ impl SkinAdapter {
         self.stats.rejected += fused.rejected as u64;
         let mut changed = false;
         for (c, cam) in self.cameras.iter().enumerate() {
+            if absent(c) {
+                continue;
+            }
             let faces: Vec<_> = fused.boxes[c].into_iter().collect();
             if self.models[c].adapt(views[c], cam.width, cam.height, &faces) {
                 changed = true;

@@ -320,7 +320,7 @@ type Adapted = Result<(Vec<SkinModel>, FaceRound), String>;
 /// it lives and dies there). Frame sets go in (with their push index), adapted models come
 /// out, one per frame set.
 struct FaceWorker {
-    frames: Option<Sender<(u64, Vec<u8>)>>,
+    frames: Option<Sender<(u64, Vec<u8>, u32)>>,
     models: Receiver<Adapted>,
     thread: Option<JoinHandle<()>>,
 }
@@ -342,7 +342,7 @@ fn lower_this_threads_priority() {
 
 impl FaceWorker {
     fn new(cameras: &[Camera]) -> Self {
-        let (frame_tx, frame_rx) = channel::<(u64, Vec<u8>)>();
+        let (frame_tx, frame_rx) = channel::<(u64, Vec<u8>, u32)>();
         let (model_tx, model_rx) = channel();
         let cameras = cameras.to_vec();
         let thread = std::thread::Builder::new()
@@ -356,9 +356,9 @@ impl FaceWorker {
                         return;
                     }
                 };
-                for (frame, frame_set) in frame_rx {
+                for (frame, frame_set, missing) in frame_rx {
                     let views = split_views(&cameras, &frame_set);
-                    adapter.adapt_now(&views);
+                    adapter.adapt_now_partial(&views, missing);
                     let round = FaceRound {
                         frame,
                         detections: adapter.last_detections().to_vec(),
@@ -373,8 +373,8 @@ impl FaceWorker {
         Self { frames: Some(frame_tx), models: model_rx, thread }
     }
 
-    fn send(&self, frame: u64, frame_set: Vec<u8>) -> Result<(), StreamError> {
-        self.frames.as_ref().and_then(|tx| tx.send((frame, frame_set)).ok()).ok_or(StreamError::FaceWorker)
+    fn send(&self, frame: u64, frame_set: Vec<u8>, missing: u32) -> Result<(), StreamError> {
+        self.frames.as_ref().and_then(|tx| tx.send((frame, frame_set, missing)).ok()).ok_or(StreamError::FaceWorker)
     }
 
     /// The next models if they are ready.
@@ -447,7 +447,7 @@ pub struct FlowStream<M> {
     faces: FaceWorker,
     frame_set_len: usize,
     /// Frames held until the warm-up rounds have their frames.
-    held: Option<Vec<(M, Vec<u8>)>>,
+    held: Option<Vec<(M, Vec<u8>, u32)>>,
     /// Frames pushed into the engine.
     pushed: u64,
     /// Frames at which the next adapted models are applied.
@@ -590,6 +590,19 @@ impl<M> FlowStream<M> {
         &mut self,
         meta: M,
         frame_set: &[u8],
+        on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        self.push_partial(meta, frame_set, 0, on_estimate)
+    }
+
+    /// [`FlowStream::push`] for a set some cameras gave no view for (bit `k` of `missing`:
+    /// camera `k`; its bytes are ignored): the engine leaves those views out, the face
+    /// detector does not look at them and their skin models keep their state.
+    pub fn push_partial<E: From<StreamError>>(
+        &mut self,
+        meta: M,
+        frame_set: &[u8],
+        missing: u32,
         mut on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         if frame_set.len() != self.frame_set_len {
@@ -597,13 +610,13 @@ impl<M> FlowStream<M> {
         }
         if let Some(held) = self.held.as_mut() {
             // Copies only the first frames of a stream, once.
-            held.push((meta, frame_set.to_vec()));
+            held.push((meta, frame_set.to_vec(), missing));
             if held.len() as u64 >= self.warm_up_frames {
                 self.release_held(&mut on_estimate)?;
             }
             return Ok(());
         }
-        self.push_now(meta, frame_set, &mut on_estimate)
+        self.push_now(meta, frame_set, missing, &mut on_estimate)
     }
 
     /// Ends the stream: estimates what is left (the last frame with the two-frame
@@ -711,13 +724,13 @@ impl<M> FlowStream<M> {
         let rounds = if self.warm_up_frames == 0 { 0 } else { WARM_UP_ROUNDS.min(held.len()) };
         for k in 0..rounds {
             let index = (k as u64 * self.warm_up_spacing) as usize % held.len();
-            self.faces.send(index as u64, held[index].1.clone())?;
+            self.faces.send(index as u64, held[index].1.clone(), held[index].2)?;
             let (models, round) = self.faces.recv()?;
             self.apply_models(&models, round)?;
         }
         let skip = self.backlog_limit.map_or(0, |keep| held.len().saturating_sub(keep));
-        for (meta, frame_set) in held.into_iter().skip(skip) {
-            self.push_now(meta, &frame_set, on_estimate)?;
+        for (meta, frame_set, missing) in held.into_iter().skip(skip) {
+            self.push_now(meta, &frame_set, missing, on_estimate)?;
         }
         Ok(())
     }
@@ -726,11 +739,12 @@ impl<M> FlowStream<M> {
         &mut self,
         meta: M,
         frame_set: &[u8],
+        missing: u32,
         on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         let k = self.pushed;
         if k.is_multiple_of(self.detect_every) && (self.wait_for_models || self.pending_models.is_empty()) {
-            self.faces.send(k, frame_set.to_vec())?;
+            self.faces.send(k, frame_set.to_vec(), missing)?;
             self.pending_models.push_back(k + self.model_lag);
         }
         if self.pending_models.front().is_some_and(|&due| due <= k) {
@@ -743,7 +757,7 @@ impl<M> FlowStream<M> {
         let views = split_views(self.engine.cameras(), frame_set);
         self.waiting.push_back((k, meta));
         self.pushed += 1;
-        if self.engine.push_frame(&views).map_err(StreamError::from)?.is_some() {
+        if self.engine.push_frame_partial(&views, missing).map_err(StreamError::from)?.is_some() {
             self.hand_out(on_estimate)?;
         }
         Ok(())

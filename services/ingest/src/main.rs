@@ -279,7 +279,7 @@ fn run(args: Args) -> Result<()> {
             width,
             height,
             flags: 0,
-            reserved: 0,
+            missing_views: 0,
             payload_len: frame_set_len as u64,
         };
         sample.send().with_context(|| format!("sending frame set {sequence}"))?;
@@ -434,6 +434,8 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     let mut last_report = Instant::now();
     let mut failed = vec![false; cameras.len()];
     let mut delivered = vec![0u64; cameras.len()];
+    let mut unrecorded = 0u64;
+    let reference = rig.most_frontal_camera();
     while sequence < total && !ipc::stop_requested() {
         for (k, camera) in cameras.iter().enumerate() {
             while let Some(frame) = camera.try_frame() {
@@ -447,18 +449,34 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
                 }
             }
         }
-        // Once every source has ended, what is left is decided at once.
+        // Once every source has ended, what is left is decided at once; once one has ended
+        // or failed, even a replay stops waiting for it.
         let ended = cameras.iter().all(LiveCamera::ended);
-        let (now, stall) = if ended { (u64::MAX, 0) } else { (clock_now_ns(), stall_ns) };
-        while let Some((instant, views)) = sync.next_set(now, stall) {
+        let one_gone = failed.iter().any(|&f| f) || cameras.iter().any(LiveCamera::ended);
+        let (now, stall) = match (ended, one_gone) {
+            (true, _) => (u64::MAX, 0),
+            (false, true) => (clock_now_ns(), stall_ns.min(4 * interval_ns)),
+            (false, false) => (clock_now_ns(), stall_ns),
+        };
+        // The engine can go on without a camera while the reference camera (where its rays
+        // start) and one other are there.
+        let carried = |present: &[bool]| present[reference] && present.iter().filter(|&&p| p).count() >= 2;
+        while let Some((instant, views)) = sync.next_set_or_partial(now, stall, carried) {
             rig_output.update_connections();
             if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
                 return Ok(());
             }
             let first = *first_instant.get_or_insert(instant);
             let mut sample = frames.publisher.loan_slice(frame_set_len).context("loaning a frame sample")?;
-            for (dst, view) in sample.payload_mut().chunks_exact_mut(frame_set_len / cameras.len()).zip(&views) {
-                dst.copy_from_slice(&view.data);
+            // A missing view stays zero, as the loan leaves it.
+            let mut missing_views = 0u32;
+            for (k, (dst, view)) in
+                sample.payload_mut().chunks_exact_mut(frame_set_len / cameras.len()).zip(&views).enumerate()
+            {
+                match view {
+                    Some(view) => dst.copy_from_slice(&view.data),
+                    None => missing_views |= 1 << k,
+                }
             }
             *sample.user_header_mut() = FrameHeader {
                 protocol_version: PROTOCOL_VERSION,
@@ -472,12 +490,17 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
                 width,
                 height,
                 flags: 0,
-                reserved: 0,
+                missing_views,
                 payload_len: frame_set_len as u64,
             };
+            // A recording holds whole frame sets only: a replay cannot tell a missing view.
             if let Some(writer) = recorder.as_mut() {
-                let header = sample.user_header();
-                writer.write_set(header.frame, header.timestamp_s, sample.payload())?;
+                if missing_views == 0 {
+                    let header = sample.user_header();
+                    writer.write_set(header.frame, header.timestamp_s, sample.payload())?;
+                } else {
+                    unrecorded += 1;
+                }
             }
             sample.send().with_context(|| format!("sending frame set {sequence}"))?;
             frames.notify()?;
@@ -503,6 +526,12 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         let written = writer.written();
         let dir = writer.finish()?;
         tracing::info!("recorded {written} frame sets into `{}`", dir.display());
+        if unrecorded > 0 {
+            tracing::warn!("{unrecorded} frame sets some camera missed were tracked but not recorded");
+        }
+    }
+    if sync.partial_sets() > 0 {
+        tracing::warn!("{} frame sets went on without a camera that had no frame for them", sync.partial_sets());
     }
     end_stream(&node, &frames, &rig_output, sequence)
 }

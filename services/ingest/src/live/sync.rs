@@ -44,6 +44,8 @@ pub struct FrameSetSync {
     stats: Vec<CameraSyncStats>,
     /// Incomplete frame sets dropped.
     incomplete_sets: u64,
+    /// Incomplete frame sets returned without the cameras that missed them.
+    partial_sets: u64,
 }
 
 /// Frames a camera may have waiting before the oldest are dropped: a camera far ahead of
@@ -58,6 +60,7 @@ impl FrameSetSync {
             queues: vec![VecDeque::new(); cameras],
             stats: vec![CameraSyncStats::default(); cameras],
             incomplete_sets: 0,
+            partial_sets: 0,
         }
     }
 
@@ -69,6 +72,11 @@ impl FrameSetSync {
     /// Frame sets dropped because a camera had no frame for them.
     pub fn incomplete_sets(&self) -> u64 {
         self.incomplete_sets
+    }
+
+    /// Frame sets returned without the cameras that missed them.
+    pub fn partial_sets(&self) -> u64 {
+        self.partial_sets
     }
 
     /// Adds a frame of `camera`. A frame older than one already waiting for the camera
@@ -93,6 +101,19 @@ impl FrameSetSync {
     /// holds the sets back until they are `stall_ns` old; then they go without it and are
     /// dropped as incomplete (`u64::MAX`: wait for it forever, as a replay must).
     pub fn next_set(&mut self, now_ns: u64, stall_ns: u64) -> Option<(u64, Vec<TimedFrame>)> {
+        let (instant, frames) = self.next_set_or_partial(now_ns, stall_ns, |_| false)?;
+        Some((instant, frames.into_iter().flatten().collect()))
+    }
+
+    /// [`FrameSetSync::next_set`], but a set some cameras missed is returned instead of
+    /// dropped when `accept` says so of its cameras' presence (in camera order): a live
+    /// stream goes on without a camera that stopped while the others can carry it.
+    pub fn next_set_or_partial(
+        &mut self,
+        now_ns: u64,
+        stall_ns: u64,
+        accept: impl Fn(&[bool]) -> bool,
+    ) -> Option<(u64, Vec<Option<TimedFrame>>)> {
         loop {
             let start = self.queues.iter().filter_map(|q| q.front()).map(|f| f.capture_ns).min()?;
             let end = start.saturating_add(self.interval_ns);
@@ -122,14 +143,21 @@ impl FrameSetSync {
                 }
                 picked.push(queue.pop_front());
             }
-            if picked.iter().all(Option::is_some) {
-                let frames: Vec<TimedFrame> = picked.into_iter().flatten().collect();
-                let first = frames.iter().map(|f| f.capture_ns).min().unwrap_or(start);
-                let last = frames.iter().map(|f| f.capture_ns).max().unwrap_or(start);
-                for stats in &mut self.stats {
-                    stats.used += 1;
+            let present: Vec<bool> = picked.iter().map(Option::is_some).collect();
+            let complete = present.iter().all(|&p| p);
+            if complete || accept(&present) {
+                let times = || picked.iter().flatten().map(|f| f.capture_ns);
+                let (first, last) = (times().min().unwrap_or(start), times().max().unwrap_or(start));
+                for (frame, stats) in picked.iter().zip(&mut self.stats) {
+                    match frame {
+                        Some(_) => stats.used += 1,
+                        None => stats.missed_sets += 1,
+                    }
                 }
-                return Some((first + (last - first) / 2, frames));
+                if !complete {
+                    self.partial_sets += 1;
+                }
+                return Some((first + (last - first) / 2, picked));
             }
             self.incomplete_sets += 1;
             for (frame, stats) in picked.iter().zip(&mut self.stats) {
@@ -234,6 +262,32 @@ mod tests {
         let (sync, sets) = run(&times, u64::MAX);
         assert_eq!(sets.len(), 19, "the last frame of the stopped camera is not yet decided");
         assert_eq!(sync.incomplete_sets(), 0);
+    }
+
+    #[test]
+    fn a_live_stream_goes_on_without_a_camera_that_stopped_when_the_others_can_carry_it() {
+        let mut times: Vec<Vec<u64>> = (0..2).map(|_| (0..40u64).map(|k| k * T).collect()).collect();
+        times.push((0..20u64).map(|k| k * T + MS).collect());
+        let mut sync = FrameSetSync::new(3, T);
+        let mut events: Vec<(u64, usize)> =
+            times.iter().enumerate().flat_map(|(c, ts)| ts.iter().map(move |&t| (t, c))).collect();
+        events.sort_unstable();
+        let mut sets = Vec::new();
+        for (t, c) in events {
+            sync.push(c, frame(t, c as u8));
+            // Camera 0 (the reference) and one other at least.
+            while let Some(set) = sync.next_set_or_partial(t, 4 * T, |p| p[0] && p.iter().filter(|&&x| x).count() >= 2)
+            {
+                sets.push(set);
+            }
+        }
+        // Every instant but the last four, still within the stall timeout at the last frame.
+        assert_eq!(sets.len(), 36);
+        assert!(sets[..20].iter().all(|(_, f)| f.iter().all(Option::is_some)));
+        assert!(sets[20..].iter().all(|(_, f)| f[0].is_some() && f[1].is_some() && f[2].is_none()));
+        assert_eq!(sync.partial_sets(), 16);
+        assert_eq!(sync.incomplete_sets(), 0);
+        assert_eq!(sync.stats()[2].missed_sets, 16);
     }
 
     #[test]
