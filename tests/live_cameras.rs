@@ -221,8 +221,8 @@ fn a_lossless_recording_of_live_cameras_replays_to_the_live_runs_trajectories_fr
     assert!(child.wait().unwrap().success(), "the recording run failed:\n{log}");
     assert!(log.contains("recorded ") && log.contains("frame sets into"), "{log}");
 
-    let live = std::fs::read_to_string(&live_out).unwrap();
-    assert!(live.lines().count() >= 10, "{} samples:\n{log}", live.lines().count());
+    let samples = std::fs::read_to_string(&live_out).unwrap().lines().count();
+    assert!(samples >= 40, "{samples} samples of 44 (replay mode loses none):\n{log}");
     let replay_out = dir.path().join("replay.jsonl");
     let status = Command::new(binaries_dir().join("handflow"))
         .args(["track", "--recording"])
@@ -233,10 +233,21 @@ fn a_lossless_recording_of_live_cameras_replays_to_the_live_runs_trajectories_fr
         .status()
         .unwrap();
     assert!(status.success());
-    let replay = std::fs::read_to_string(&replay_out).unwrap();
-    assert_eq!(replay.lines().count(), live.lines().count(), "one trajectory sample per recorded frame set");
-    for (k, (a, b)) in live.lines().zip(replay.lines()).enumerate() {
-        assert_eq!(a, b, "sample {k}: the replay of the lossless recording differs from the live run");
+    let (live, replay) = (read_tracks(&live_out).unwrap(), read_tracks(&replay_out).unwrap());
+    assert_eq!(replay.len(), live.len(), "one trajectory sample per recorded frame set:\n{log}");
+    // The same computation on the same pixels. The replay takes its frame rate from the
+    // recording's capture times (30.0000003 fps here), the live run from the cameras' nominal
+    // 30: velocities, in metres per second, differ in their last digits.
+    for (a, b) in live.iter().zip(&replay) {
+        assert_eq!((a.frame, a.t), (b.frame, b.t));
+        for (name, x) in &a.objects {
+            let y = &b.objects[name];
+            assert_eq!(x.state, y.state, "frame {} {name}", a.frame);
+            for i in 0..3 {
+                assert!((x.pos[i] - y.pos[i]).abs() < 1e-9, "frame {} {name}: {:?} vs {:?}", a.frame, x.pos, y.pos);
+                assert!((x.vel[i] - y.vel[i]).abs() < 1e-6, "frame {} {name}: {:?} vs {:?}", a.frame, x.vel, y.vel);
+            }
+        }
     }
 }
 
@@ -252,7 +263,7 @@ fn a_live_stream_goes_on_without_a_camera_that_stops_and_keeps_tracking() {
     let rig = Recording::open(&rec).unwrap().rig().clone();
     // A side camera (not the reference, the most frontal) stops after 20 frames.
     let reference = rig.most_frontal_camera();
-    let stopping = (0..rig.cameras.len()).find(|&k| k != reference).unwrap();
+    let stopping = (0..rig.cameras.len()).rev().find(|&k| k != reference).unwrap();
     let mut limits = vec![None; rig.cameras.len()];
     limits[stopping] = Some(20);
     let videos = encode_cameras_up_to(&rec, 10, &limits);
@@ -279,13 +290,13 @@ fn a_live_stream_goes_on_without_a_camera_that_stops_and_keeps_tracking() {
     for r in &mut mapped {
         r.frame = (r.t * 10.0).round() as u64;
     }
-    // The stream went on past the stop, every frame set of it, and kept the head with the
-    // two cameras left. (How well two of this rig's cameras, 35 degrees apart, place the
-    // hands is the engine's matter: offline, without either side camera, a hand is lost.)
+    // The stream went on past the stop and kept head and hands with the two cameras left
+    // (measured: head 5.1 to 5.3 cm rmse, hands 97 to 100 % agreement and about 1 cm).
     let after: Vec<_> = mapped.iter().filter(|r| r.frame >= 25).cloned().collect();
     // Live: a stage that falls behind skips sets, so not every one of the 35 comes out.
     assert!(after.len() >= 25, "{} samples of 35 after the camera stopped:\n{log}", after.len());
     let scores = evaluate_tracks(&Recording::open(&rec).unwrap(), &after).unwrap();
-    assert!(scores.head.rmse_3d_m < 0.1, "{scores:?}");
+    assert!(scores.head.rmse_3d_m < 0.08, "{scores:?}");
+    assert!(scores.left_hand.agreement >= 0.85 && scores.right_hand.agreement >= 0.85, "{scores:?}");
     assert!(after.iter().all(|r| r.objects["head"].pos.iter().all(|v| v.is_finite())));
 }

@@ -42,8 +42,13 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
                 if h.is_end_of_stream() {
                     return line(format!("frames seq {} END OF STREAM{check}", h.sequence));
                 }
+                // A live camera that stopped or fell behind: which views the set goes without.
+                let missing: Vec<String> =
+                    (0..h.view_count as usize).filter(|&k| !h.has_view(k)).map(|k| k.to_string()).collect();
+                let missing =
+                    if missing.is_empty() { String::new() } else { format!(", views missing: {}", missing.join(", ")) };
                 line(format!(
-                    "frames seq {} frame {} t {:.3} s: {} x {}x{} RGB8, {} bytes, captured {age:.1} ms ago{check}",
+                    "frames seq {} frame {} t {:.3} s: {} x {}x{} RGB8, {} bytes, captured {age:.1} ms ago{missing}{check}",
                     h.sequence, h.frame, h.timestamp_s, h.view_count, h.width, h.height, h.payload_len
                 ))
             })

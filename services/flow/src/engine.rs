@@ -395,7 +395,9 @@ impl SceneFlowEngine {
         pyramids.par_iter_mut().zip(self.cameras.par_iter()).zip(views.par_iter()).for_each(|((pyr, cam), view)| {
             pyr.rebuild(cam.width as usize, cam.height as usize, view, levels, local, finest);
         });
-        self.present[slot] = (0..self.cameras.len()).map(has).collect();
+        // Refilled in place: a steady stream allocates nothing per frame.
+        self.present[slot].clear();
+        self.present[slot].extend((0..self.cameras.len()).map(has));
         if self.config.coverage == Coverage::Skin {
             let maps = &mut self.skin_maps[slot];
             maps.resize_with(self.cameras.len(), Vec::new);

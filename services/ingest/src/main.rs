@@ -7,7 +7,8 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use handflow_ingest::live::{
-    camera::clock_now_ns, CameraSource, FrameSetSync, LiveCamera, LiveCameraSpec, RecordingWriter,
+    camera::clock_now_ns, sync::MAX_WAITING_FRAMES, CameraSource, FrameSetSync, LiveCamera, LiveCameraSpec,
+    RecordingWriter,
 };
 use handflow_ingest::synthetic::{Renderer, SceneSpec};
 use handflow_ingest::{OpenOptions, Recording};
@@ -368,7 +369,9 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
             .map_err(anyhow::Error::msg)
             .with_context(|| format!("camera `{}`", cam.name))?;
         fps = fps.or(spec.fps);
-        cameras.push(LiveCamera::start(&cam.name, &source, cam.width, cam.height, spec.size, spec.fps)?);
+        // Replay loses nothing after the cameras: a camera's frames wait for the pipeline.
+        let lossless = args.mode == Mode::Replay;
+        cameras.push(LiveCamera::start_with(&cam.name, &source, cam.width, cam.height, spec.size, spec.fps, lossless)?);
         tracing::info!("camera `{}`: started from `{}`", cam.name, spec.source);
     }
     let fps = fps.unwrap_or(DEFAULT_LIVE_FPS);
@@ -433,12 +436,28 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     let (mut sequence, mut first_instant) = (0u64, None);
     let mut last_report = Instant::now();
     let mut failed = vec![false; cameras.len()];
+    let mut gone = vec![false; cameras.len()];
     let mut delivered = vec![0u64; cameras.len()];
     let mut unrecorded = 0u64;
     let reference = rig.most_frontal_camera();
     while sequence < total && !ipc::stop_requested() {
         for (k, camera) in cameras.iter().enumerate() {
-            while let Some(frame) = camera.try_frame() {
+            // Read before the hand-over is emptied: an ended source is over once its last
+            // frames are out of the hand-over too.
+            let source_ended = camera.ended();
+            // Replay: a camera's frames stay in its hand-over (holding the source back)
+            // rather than overflow the synchroniser.
+            loop {
+                if args.mode == Mode::Replay && sync.waiting(k) >= MAX_WAITING_FRAMES {
+                    break;
+                }
+                let Some(frame) = camera.try_frame() else {
+                    if source_ended && !gone[k] {
+                        sync.finish_camera(k);
+                        gone[k] = true;
+                    }
+                    break;
+                };
                 tracing::trace!("camera `{}`: frame captured at {} ns", camera.name(), frame.capture_ns);
                 sync.push(k, frame);
             }
@@ -446,18 +465,16 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
                 if let Some(problem) = camera.failure() {
                     tracing::error!("camera `{}` stopped: {problem}", camera.name());
                     failed[k] = true;
+                    // A failed camera delivers nothing more: sets stop waiting for it.
+                    sync.finish_camera(k);
+                    gone[k] = true;
                 }
             }
         }
-        // Once every source has ended, what is left is decided at once; once one has ended
-        // or failed, even a replay stops waiting for it.
-        let ended = cameras.iter().all(LiveCamera::ended);
-        let one_gone = failed.iter().any(|&f| f) || cameras.iter().any(LiveCamera::ended);
-        let (now, stall) = match (ended, one_gone) {
-            (true, _) => (u64::MAX, 0),
-            (false, true) => (clock_now_ns(), stall_ns.min(4 * interval_ns)),
-            (false, false) => (clock_now_ns(), stall_ns),
-        };
+        // Once every source has ended, what is left is decided at once; a camera that ended
+        // or failed is not waited for (the synchroniser knows).
+        let ended = gone.iter().all(|&g| g);
+        let (now, stall) = if ended { (u64::MAX, 0) } else { (clock_now_ns(), stall_ns) };
         // The engine can go on without a camera while the reference camera (where its rays
         // start) and one other are there.
         let carried = |present: &[bool]| present[reference] && present.iter().filter(|&&p| p).count() >= 2;

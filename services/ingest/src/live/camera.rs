@@ -192,6 +192,21 @@ impl LiveCamera {
         size: Option<[u32; 2]>,
         fps: Option<f64>,
     ) -> Result<LiveCamera, LiveCameraError> {
+        Self::start_with(name, source, width, height, size, fps, false)
+    }
+
+    /// [`LiveCamera::start`]; with `lossless`, a consumer that falls behind holds the source
+    /// back instead of losing frames (a replay: a video played as a camera then pauses; a
+    /// device still drops in its driver).
+    pub fn start_with(
+        name: &str,
+        source: &CameraSource,
+        width: u32,
+        height: u32,
+        size: Option<[u32; 2]>,
+        fps: Option<f64>,
+        lossless: bool,
+    ) -> Result<LiveCamera, LiveCameraError> {
         let open_error = |problem: String| LiveCameraError::Open { camera: name.to_string(), problem };
         crate::recording::video::init_gstreamer().map_err(open_error)?;
         let description = source.launch_description(size.or(Some([width, height])), fps);
@@ -206,7 +221,7 @@ impl LiveCamera {
             .ok_or_else(|| open_error("the pipeline has no RGB sink".into()))?;
         sink.set_sync(source.paced_by_clock());
         sink.set_max_buffers(2);
-        sink.set_drop(true);
+        sink.set_drop(!lossless);
         // One clock for every camera: capture times compare across the rig.
         pipeline.use_clock(Some(&gst::SystemClock::obtain()));
         if pipeline.set_state(gst::State::Playing).is_err() {
@@ -244,6 +259,12 @@ impl LiveCamera {
                         match timed_frame(&sample, &pipeline, width, height) {
                             Ok(Some(frame)) => {
                                 set(&|s| s.delivered += 1);
+                                if lossless {
+                                    if sender.send(frame).is_err() {
+                                        return;
+                                    }
+                                    continue;
+                                }
                                 match sender.try_send(frame) {
                                     Ok(()) => {}
                                     Err(TrySendError::Full(_)) => set(&|s| s.handover_dropped += 1),

@@ -46,6 +46,8 @@ pub struct FrameSetSync {
     incomplete_sets: u64,
     /// Incomplete frame sets returned without the cameras that missed them.
     partial_sets: u64,
+    /// Cameras whose source has ended: nothing more will come from them.
+    gone: Vec<bool>,
 }
 
 /// Frames a camera may have waiting before the oldest are dropped: a camera far ahead of
@@ -61,6 +63,7 @@ impl FrameSetSync {
             stats: vec![CameraSyncStats::default(); cameras],
             incomplete_sets: 0,
             partial_sets: 0,
+            gone: vec![false; cameras],
         }
     }
 
@@ -72,6 +75,19 @@ impl FrameSetSync {
     /// Frame sets dropped because a camera had no frame for them.
     pub fn incomplete_sets(&self) -> u64 {
         self.incomplete_sets
+    }
+
+    /// Says that `camera` will deliver nothing more (its source ended and every frame it gave
+    /// was pushed): windows no longer wait for it.
+    pub fn finish_camera(&mut self, camera: usize) {
+        if let Some(g) = self.gone.get_mut(camera) {
+            *g = true;
+        }
+    }
+
+    /// Frames of `camera` waiting for their sets.
+    pub fn waiting(&self, camera: usize) -> usize {
+        self.queues.get(camera).map_or(0, VecDeque::len)
     }
 
     /// Frame sets returned without the cameras that missed them.
@@ -117,7 +133,11 @@ impl FrameSetSync {
         loop {
             let start = self.queues.iter().filter_map(|q| q.front()).map(|f| f.capture_ns).min()?;
             let end = start.saturating_add(self.interval_ns);
-            let closed = self.queues.iter().all(|q| q.back().is_some_and(|f| f.capture_ns >= end));
+            let closed = self
+                .queues
+                .iter()
+                .zip(&self.gone)
+                .all(|(q, &gone)| gone || q.back().is_some_and(|f| f.capture_ns >= end));
             if !closed && now_ns.saturating_sub(start) < stall_ns {
                 return None;
             }
