@@ -83,6 +83,36 @@ fn encode_cameras_up_to(rec: &Path, fps: u32, limits: &[Option<u32>]) -> Vec<(St
         .collect()
 }
 
+/// Writes `dir/live.toml`: `mode`, `cameras` (name and source) at `fps`, placed by `rec`'s
+/// `rig.toml`, trajectories into `dir/trajectories.jsonl`. Returns the file and that output.
+fn write_pipeline(
+    dir: &Path,
+    mode: &str,
+    rec: &Path,
+    test: &str,
+    cameras: &[(String, String)],
+    fps: u32,
+) -> (PathBuf, PathBuf) {
+    let out = dir.join("trajectories.jsonl");
+    let mut pipeline = format!(
+        "mode = \"{mode}\"\ncalibration = \"{}\"\nout = \"{}\"\nservices = \"{}\"\n",
+        rec.join("rig.toml").display(),
+        out.display(),
+        unique_prefix(test)
+    );
+    for (name, source) in cameras {
+        pipeline.push_str(&format!("\n[[cameras]]\nname = \"{name}\"\nsource = \"{source}\"\nfps = {fps}\n"));
+    }
+    let file = dir.join("live.toml");
+    std::fs::write(&file, pipeline).unwrap();
+    (file, out)
+}
+
+/// Each video as a camera source played at its own rate.
+fn video_sources(videos: &[(String, PathBuf)]) -> Vec<(String, String)> {
+    videos.iter().map(|(name, video)| (name.clone(), format!("file://{}", video.display()))).collect()
+}
+
 #[test]
 fn cameras_playing_videos_at_their_rate_are_grouped_by_capture_time_and_tracked() {
     if !have_ffmpeg() {
@@ -94,21 +124,7 @@ fn cameras_playing_videos_at_their_rate_are_grouped_by_capture_time_and_tracked(
     let rec = render_preset(dir.path(), "signer-3cam", frames, Some((320, 240)));
     let fps = 30;
     let videos = encode_cameras(&rec, fps);
-    let out = dir.path().join("trajectories.jsonl");
-    let mut pipeline = format!(
-        "mode = \"live\"\ncalibration = \"{}\"\nout = \"{}\"\nservices = \"{}\"\n",
-        rec.join("rig.toml").display(),
-        out.display(),
-        unique_prefix("live-videos")
-    );
-    for (name, video) in &videos {
-        pipeline.push_str(&format!(
-            "\n[[cameras]]\nname = \"{name}\"\nsource = \"file://{}\"\nfps = {fps}\n",
-            video.display()
-        ));
-    }
-    let file = dir.path().join("live.toml");
-    std::fs::write(&file, pipeline).unwrap();
+    let (file, out) = write_pipeline(dir.path(), "live", &rec, "live-videos", &video_sources(&videos), fps);
     let (ok, log) = run_pipeline(&file, Duration::from_secs(240));
     assert!(ok, "the run failed:\n{log}");
     assert!(log.contains("every camera's source has ended"), "{log}");
@@ -140,22 +156,19 @@ fn a_camera_delivering_another_size_than_its_calibration_is_refused_at_start_nam
     let dir = tempfile::tempdir().unwrap();
     let rec = render_preset(dir.path(), "signer-3cam", 2, Some((320, 240)));
     let rig = Recording::open(&rec).unwrap().rig().clone();
-    let mut pipeline = format!(
-        "mode = \"live\"\ncalibration = \"{}\"\nservices = \"{}\"\n",
-        rec.join("rig.toml").display(),
-        unique_prefix("live-size")
-    );
-    for (k, cam) in rig.cameras.iter().enumerate() {
-        // The last camera delivers 160x120 instead of its calibrated 320x240.
-        let (w, h) = if k + 1 == rig.cameras.len() { (160, 120) } else { (320, 240) };
-        pipeline.push_str(&format!(
-            "\n[[cameras]]\nname = \"{}\"\nsource = \"gst:videotestsrc is-live=true pattern=ball ! \
-             video/x-raw,width={w},height={h},framerate=30/1\"\nfps = 30\n",
-            cam.name
-        ));
-    }
-    let file = dir.path().join("live.toml");
-    std::fs::write(&file, pipeline).unwrap();
+    // The last camera delivers 160x120 instead of its calibrated 320x240.
+    let sources: Vec<(String, String)> = rig
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(k, cam)| {
+            let (w, h) = if k + 1 == rig.cameras.len() { (160, 120) } else { (320, 240) };
+            let source =
+                format!("gst:videotestsrc is-live=true pattern=ball ! video/x-raw,width={w},height={h},framerate=30/1");
+            (cam.name.clone(), source)
+        })
+        .collect();
+    let (file, _) = write_pipeline(dir.path(), "live", &rec, "live-size", &sources, 30);
     let (ok, log) = run_pipeline(&file, Duration::from_secs(60));
     assert!(!ok, "a camera of the wrong size must stop the run:\n{log}");
     let last = &rig.cameras[rig.cameras.len() - 1].name;
@@ -166,14 +179,8 @@ fn a_camera_delivering_another_size_than_its_calibration_is_refused_at_start_nam
 fn a_pipeline_naming_a_camera_the_calibration_lacks_is_refused_naming_both() {
     let dir = tempfile::tempdir().unwrap();
     let rec = render_preset(dir.path(), "signer-3cam", 2, Some((160, 120)));
-    let pipeline = format!(
-        "mode = \"live\"\ncalibration = \"{}\"\nservices = \"{}\"\n\n[[cameras]]\nname = \"front\"\nsource = \
-         \"gst:videotestsrc is-live=true\"\n",
-        rec.join("rig.toml").display(),
-        unique_prefix("live-name")
-    );
-    let file = dir.path().join("live.toml");
-    std::fs::write(&file, pipeline).unwrap();
+    let sources = [("front".to_string(), "gst:videotestsrc is-live=true".to_string())];
+    let (file, _) = write_pipeline(dir.path(), "live", &rec, "live-name", &sources, 30);
     let (ok, log) = run_pipeline(&file, Duration::from_secs(60));
     assert!(!ok, "{log}");
     assert!(log.contains("camera `front`") && log.contains("not in the calibration"), "{log}");
@@ -188,23 +195,9 @@ fn a_lossless_recording_of_live_cameras_replays_to_the_live_runs_trajectories_fr
     let dir = tempfile::tempdir().unwrap();
     let rec = render_preset(dir.path(), "signer-3cam", 45, Some((320, 240)));
     let videos = encode_cameras(&rec, 30);
-    let live_out = dir.path().join("live.jsonl");
-    // Replay mode: the cameras drop what the pipeline cannot take, but every frame set
-    // published is tracked and recorded.
-    let mut pipeline = format!(
-        "mode = \"replay\"\ncalibration = \"{}\"\nout = \"{}\"\nservices = \"{}\"\n",
-        rec.join("rig.toml").display(),
-        live_out.display(),
-        unique_prefix("live-record")
-    );
-    for (name, video) in &videos {
-        pipeline.push_str(&format!(
-            "\n[[cameras]]\nname = \"{name}\"\nsource = \"file://{}\"\nfps = 30\n",
-            video.display()
-        ));
-    }
-    let file = dir.path().join("live.toml");
-    std::fs::write(&file, pipeline).unwrap();
+    // Replay mode: nothing is dropped after the cameras (their frames wait for the
+    // pipeline), and every frame set published is tracked and recorded.
+    let (file, live_out) = write_pipeline(dir.path(), "replay", &rec, "live-record", &video_sources(&videos), 30);
     let recorded = dir.path().join("session");
     let mut child = Command::new(binaries_dir().join("handflow"))
         .args(["record", "--pipeline"])
@@ -267,21 +260,7 @@ fn a_live_stream_goes_on_without_a_camera_that_stops_and_keeps_tracking() {
     let mut limits = vec![None; rig.cameras.len()];
     limits[stopping] = Some(20);
     let videos = encode_cameras_up_to(&rec, 10, &limits);
-    let out = dir.path().join("trajectories.jsonl");
-    let mut pipeline = format!(
-        "mode = \"live\"\ncalibration = \"{}\"\nout = \"{}\"\nservices = \"{}\"\n",
-        rec.join("rig.toml").display(),
-        out.display(),
-        unique_prefix("live-stop")
-    );
-    for (name, video) in &videos {
-        pipeline.push_str(&format!(
-            "\n[[cameras]]\nname = \"{name}\"\nsource = \"file://{}\"\nfps = 10\n",
-            video.display()
-        ));
-    }
-    let file = dir.path().join("live.toml");
-    std::fs::write(&file, pipeline).unwrap();
+    let (file, out) = write_pipeline(dir.path(), "live", &rec, "live-stop", &video_sources(&videos), 10);
     let (ok, log) = run_pipeline(&file, Duration::from_secs(240));
     assert!(ok, "the run failed:\n{log}");
     assert!(log.contains("went on without a camera"), "{log}");
