@@ -198,23 +198,7 @@ fn run(args: Args) -> Result<()> {
     let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
     // Replay loses nothing: the flow stage must listen before a frame goes out (at the start
     // and after a restart of flow). Meanwhile late joiners get the rig.
-    let wait_for_flow = || -> bool {
-        let mut announced = false;
-        loop {
-            rig.update_connections();
-            if frames.subscribers() > 0 {
-                frames.update_connections();
-                return true;
-            }
-            if !announced {
-                tracing::info!("waiting for a subscriber on `{}`", frames.name());
-                announced = true;
-            }
-            if node.wait(Duration::from_millis(5)).is_err() {
-                return false;
-            }
-        }
-    };
+    let wait_for_flow = || wait_for_flow(&node, &rig, &frames);
     if args.mode == Mode::Replay && !wait_for_flow() {
         return Ok(());
     }
@@ -291,6 +275,31 @@ fn run(args: Args) -> Result<()> {
         }
     }
     end_stream(&node, &frames, &rig, total)
+}
+
+/// Waits until the flow stage listens on `frames` (replay loses nothing downstream: at the
+/// start and after a restart of flow), meanwhile serving the rig to late joiners. False when
+/// the process is asked to stop.
+fn wait_for_flow(
+    node: &ipc::IpcNode,
+    rig: &ipc::Output<[u8], RigHeader>,
+    frames: &ipc::Output<[u8], FrameHeader>,
+) -> bool {
+    let mut announced = false;
+    loop {
+        rig.update_connections();
+        if frames.subscribers() > 0 {
+            frames.update_connections();
+            return true;
+        }
+        if !announced {
+            tracing::info!("waiting for a subscriber on `{}`", frames.name());
+            announced = true;
+        }
+        if node.wait(Duration::from_millis(5)).is_err() {
+            return false;
+        }
+    }
 }
 
 /// Sends the end of the stream after `total` frame sets and stays until stopped: the
@@ -407,19 +416,8 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         args.mode
     );
     // Replay mode loses nothing downstream: the flow stage listens before a set goes out
-    // (the cameras meanwhile drop what they deliver, counted in their reports).
-    let wait_for_flow = || -> bool {
-        loop {
-            rig_output.update_connections();
-            if frames.subscribers() > 0 {
-                frames.update_connections();
-                return true;
-            }
-            if node.wait(Duration::from_millis(5)).is_err() {
-                return false;
-            }
-        }
-    };
+    // (the cameras' frames meanwhile wait in their hand-over).
+    let wait_for_flow = || wait_for_flow(&node, &rig_output, &frames);
     if args.mode == Mode::Replay && !wait_for_flow() {
         return Ok(());
     }

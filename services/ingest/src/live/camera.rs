@@ -20,6 +20,7 @@ use gstreamer_video as gst_video;
 use gstreamer_video::prelude::*;
 
 use super::sync::TimedFrame;
+use crate::recording::video::bus_error;
 use crate::recording::yuv;
 
 /// Frames a camera's thread may hold for the consumer before it drops the oldest.
@@ -225,7 +226,7 @@ impl LiveCamera {
         // One clock for every camera: capture times compare across the rig.
         pipeline.use_clock(Some(&gst::SystemClock::obtain()));
         if pipeline.set_state(gst::State::Playing).is_err() {
-            let problem = pipeline_error(&pipeline).unwrap_or_else(|| "the source would not start".into());
+            let problem = bus_error(&pipeline).unwrap_or_else(|| "the source would not start".into());
             let _ = pipeline.set_state(gst::State::Null);
             return Err(open_error(problem));
         }
@@ -250,7 +251,7 @@ impl LiveCamera {
                                 set(&|s| s.ended = true);
                                 return;
                             }
-                            if let Some(problem) = pipeline_error(&pipeline) {
+                            if let Some(problem) = bus_error(&pipeline) {
                                 set(&|s| s.failure = Some(problem.clone()));
                                 return;
                             }
@@ -329,18 +330,6 @@ impl Drop for LiveCamera {
         }
         let _ = self.pipeline.set_state(gst::State::Null);
     }
-}
-
-/// The first error on a pipeline's bus, if any.
-fn pipeline_error(pipeline: &gst::Pipeline) -> Option<String> {
-    let bus = pipeline.bus()?;
-    while let Some(message) = bus.pop_filtered(&[gst::MessageType::Error]) {
-        if let gst::MessageView::Error(error) = message.view() {
-            let detail = error.debug().map(|d| format!(" ({d})")).unwrap_or_default();
-            return Some(format!("{}{detail}", error.error()));
-        }
-    }
-    None
 }
 
 /// A pulled sample as a frame stamped with its capture time: the pipeline's base time plus

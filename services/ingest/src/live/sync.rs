@@ -201,9 +201,13 @@ mod tests {
         TimedFrame { capture_ns: ns, data: vec![camera] }
     }
 
+    /// A set's instant and its cameras' capture times (`None`: the camera missed it).
+    type TimedSet = (u64, Vec<Option<u64>>);
+
     /// Feeds each camera's capture times in time order, asking for sets after every frame
-    /// with the clock at that frame; returns the sets' instants and per-set camera times.
-    fn run(times: &[Vec<u64>], stall: u64) -> (FrameSetSync, Vec<(u64, Vec<u64>)>) {
+    /// with the clock at that frame (a set some camera missed is returned when `accept` says
+    /// so); returns the sets' instants and per-set camera times, `None` for a missing camera.
+    fn drive(times: &[Vec<u64>], stall: u64, accept: impl Fn(&[bool]) -> bool) -> (FrameSetSync, Vec<TimedSet>) {
         let mut sync = FrameSetSync::new(times.len(), T);
         let mut events: Vec<(u64, usize)> =
             times.iter().enumerate().flat_map(|(c, ts)| ts.iter().map(move |&t| (t, c))).collect();
@@ -211,12 +215,21 @@ mod tests {
         let mut sets = Vec::new();
         for (t, c) in events {
             sync.push(c, frame(t, c as u8));
-            while let Some((instant, frames)) = sync.next_set(t, stall) {
-                assert!(frames.iter().enumerate().all(|(k, f)| f.data == vec![k as u8]), "camera order");
-                sets.push((instant, frames.iter().map(|f| f.capture_ns).collect()));
+            while let Some((instant, frames)) = sync.next_set_or_partial(t, stall, &accept) {
+                assert!(
+                    frames.iter().enumerate().all(|(k, f)| f.as_ref().is_none_or(|f| f.data == vec![k as u8])),
+                    "camera order"
+                );
+                sets.push((instant, frames.iter().map(|f| f.as_ref().map(|f| f.capture_ns)).collect()));
             }
         }
         (sync, sets)
+    }
+
+    /// [`drive`] with complete sets only.
+    fn run(times: &[Vec<u64>], stall: u64) -> (FrameSetSync, Vec<(u64, Vec<u64>)>) {
+        let (sync, sets) = drive(times, stall, |_| false);
+        (sync, sets.into_iter().map(|(instant, frames)| (instant, frames.into_iter().flatten().collect())).collect())
     }
 
     #[test]
@@ -288,19 +301,8 @@ mod tests {
     fn a_live_stream_goes_on_without_a_camera_that_stopped_when_the_others_can_carry_it() {
         let mut times: Vec<Vec<u64>> = (0..2).map(|_| (0..40u64).map(|k| k * T).collect()).collect();
         times.push((0..20u64).map(|k| k * T + MS).collect());
-        let mut sync = FrameSetSync::new(3, T);
-        let mut events: Vec<(u64, usize)> =
-            times.iter().enumerate().flat_map(|(c, ts)| ts.iter().map(move |&t| (t, c))).collect();
-        events.sort_unstable();
-        let mut sets = Vec::new();
-        for (t, c) in events {
-            sync.push(c, frame(t, c as u8));
-            // Camera 0 (the reference) and one other at least.
-            while let Some(set) = sync.next_set_or_partial(t, 4 * T, |p| p[0] && p.iter().filter(|&&x| x).count() >= 2)
-            {
-                sets.push(set);
-            }
-        }
+        // Camera 0 (the reference) and one other at least.
+        let (sync, sets) = drive(&times, 4 * T, |p| p[0] && p.iter().filter(|&&x| x).count() >= 2);
         // Every instant but the last four, still within the stall timeout at the last frame.
         assert_eq!(sets.len(), 36);
         assert!(sets[..20].iter().all(|(_, f)| f.iter().all(Option::is_some)));

@@ -116,7 +116,7 @@ fn is_video(caps: &gst::CapsRef) -> bool {
 }
 
 /// The first error message on the bus, if any.
-fn bus_error(pipeline: &gst::Pipeline) -> Option<String> {
+pub(crate) fn bus_error(pipeline: &gst::Pipeline) -> Option<String> {
     let bus = pipeline.bus()?;
     while let Some(message) = bus.pop_filtered(&[gst::MessageType::Error]) {
         if let gst::MessageView::Error(error) = message.view() {
