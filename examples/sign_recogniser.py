@@ -8,14 +8,19 @@ does the same in Rust.
 
     python3 examples/sign_recogniser.py &        # before the pipeline: it sees every sample
     target/release/handflow run --recording out/hands-cross
+
+On another machine it reads the samples as JSON through the pipeline's Zenoh bridge (the
+`eclipse-zenoh` package from PyPI, the version of the bridge's zenoh crate:
+`pip install eclipse-zenoh==1.10.2`):
+
+    python3 examples/sign_recogniser.py --zenoh tcp/rig-host:7447
 """
 
 import argparse
 import ctypes
+import json
 import math
 import sys
-
-import iceoryx2 as iox2
 
 PROTOCOL_VERSION = 2
 END_OF_STREAM = 1
@@ -94,10 +99,93 @@ class Recogniser:
         return events
 
 
+class Report:
+    """What the recogniser has seen, for its summary."""
+
+    def __init__(self):
+        self.recogniser = Recogniser()
+        self.samples, self.events, self.first, self.last, self.dropped = 0, 0, None, 0, 0
+
+    def handle(self, s):
+        """Handles one sample; True at the end of the stream."""
+        if s.protocol_version != PROTOCOL_VERSION:
+            print(f"skipping a sample of protocol version {s.protocol_version}", file=sys.stderr)
+            return False
+        if s.flags & END_OF_STREAM:
+            frames = "none" if self.first is None else f"{self.first}..={self.last}"
+            print(f"summary: {self.samples} samples, frames {frames}, {self.dropped} dropped upstream, {self.events} events")
+            return True
+        self.samples += 1
+        self.first = s.frame if self.first is None else self.first
+        self.last, self.dropped = s.frame, s.dropped_frames
+        for event in self.recogniser.observe(s):
+            self.events += 1
+            print(f"frame {s.frame} t {s.timestamp_s:.3f} s: {event}", flush=True)
+        return False
+
+
+def sample_from_json(text):
+    """A trajectory sample from the bridge's JSON form (`handflow/<rig>/trajectories/json`),
+    with the fields the recogniser reads, named as in the binary layout."""
+    d = json.loads(text)
+    s = TrajectorySample()
+    s.protocol_version = PROTOCOL_VERSION
+    s.flags = END_OF_STREAM if d["end_of_stream"] else 0
+    s.sequence, s.frame, s.timestamp_s, s.dropped_frames = d["sequence"], d["frame"], d["t"], d["dropped_frames"]
+    states = {"tracked": 0, "predicted": 1, "lost": LOST}
+    for k, label in enumerate(("head", "left_hand", "right_hand")):
+        o = d["objects"].get(label)
+        if o is None:
+            s.objects[k].state = LOST
+            continue
+        s.objects[k].position[:] = o["pos"]
+        s.objects[k].velocity[:] = o["vel"]
+        s.objects[k].confidence = o["confidence"]
+        s.objects[k].state = states.get(o["state"], LOST)
+    return s
+
+
+def run_zenoh(endpoint, rig):
+    """Reads the trajectories of `rig` (every rig when None) behind a Zenoh endpoint."""
+    import zenoh
+
+    config = zenoh.Config()
+    # Only the endpoint given (no multicast scouting); retry every 250 ms to 1 s, so a bridge
+    # that restarts is found again within a second.
+    for key, value in (
+        ("mode", '"peer"'),
+        ("scouting/multicast/enabled", "false"),
+        ("connect/endpoints", json.dumps([endpoint])),
+        ("connect/timeout_ms", "-1"),
+        ("connect/exit_on_failure", "false"),
+        ("connect/retry", "{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }"),
+    ):
+        config.insert_json5(key, value)
+    report = Report()
+    with zenoh.open(config) as session:
+        subscriber = session.declare_subscriber(f"handflow/{rig or '*'}/trajectories/json")
+        print(f"listening on `{endpoint}` (Zenoh)", flush=True)
+        while True:
+            sample = subscriber.recv()
+            try:
+                s = sample_from_json(sample.payload.to_string())
+            except (ValueError, KeyError, TypeError) as e:
+                print(f"skipping a malformed sample on {sample.key_expr}: {e}", file=sys.stderr)
+                continue
+            if report.handle(s):
+                return 0
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--services", default="handflow", help="prefix of the pipeline's service names")
+    parser.add_argument("--zenoh", metavar="ENDPOINT", help="read a pipeline on another machine through its Zenoh bridge")
+    parser.add_argument("--rig", help="with --zenoh: the rig to follow (default: every rig there)")
     args = parser.parse_args()
+    if args.zenoh:
+        return run_zenoh(args.zenoh, args.rig)
+
+    import iceoryx2 as iox2
 
     iox2.set_log_level_from_env_or(iox2.LogLevel.Error)
     node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
@@ -118,28 +206,15 @@ def main():
     guard = waitset.attach_deadline(listener, iox2.Duration.from_millis(100))
     print(f"listening on `{name}`", flush=True)
 
-    recogniser = Recogniser()
-    samples, events, first, last, dropped = 0, 0, None, 0, 0
+    report = Report()
     while True:
         listener.try_wait_all() if hasattr(listener, "try_wait_all") else listener.try_wait()
         while True:
             sample = subscriber.receive()
             if sample is None:
                 break
-            s = sample.payload().contents
-            if s.protocol_version != PROTOCOL_VERSION:
-                print(f"skipping a sample of protocol version {s.protocol_version}", file=sys.stderr)
-                continue
-            if s.flags & END_OF_STREAM:
-                frames = "none" if first is None else f"{first}..={last}"
-                print(f"summary: {samples} samples, frames {frames}, {dropped} dropped upstream, {events} events")
+            if report.handle(sample.payload().contents):
                 return 0
-            samples += 1
-            first = s.frame if first is None else first
-            last, dropped = s.frame, s.dropped_frames
-            for event in recogniser.observe(s):
-                events += 1
-                print(f"frame {s.frame} t {s.timestamp_s:.3f} s: {event}", flush=True)
         _, result = waitset.wait_and_process()
         if result in (iox2.WaitSetRunResult.TerminationRequest, iox2.WaitSetRunResult.Interrupt):
             del guard

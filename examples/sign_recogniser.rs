@@ -7,6 +7,13 @@
 //! target/release/sign-recogniser &            # before the pipeline: it sees every sample
 //! target/release/handflow run --recording out/hands-cross
 //! ```
+//!
+//! On another machine it reads the same samples through the pipeline's Zenoh bridge
+//! (`[network] zenoh = { listen = "tcp/0.0.0.0:7447" }` in the pipeline file):
+//!
+//! ```sh
+//! target/release/sign-recogniser --zenoh tcp/rig-host:7447
+//! ```
 
 use std::time::Duration;
 
@@ -27,6 +34,13 @@ struct Args {
     /// The pipeline's delivery mode (`replay` or `live`): the subscription must match it.
     #[arg(long, default_value = "replay")]
     mode: Mode,
+    /// Read a pipeline on another machine through its Zenoh bridge at this endpoint
+    /// (`tcp/<host>:<port>`) instead of shared memory on this one.
+    #[arg(long)]
+    zenoh: Option<String>,
+    /// With `--zenoh`: the rig to follow (default: every rig behind the endpoint).
+    #[arg(long, requires = "zenoh")]
+    rig: Option<String>,
 }
 
 /// A hand is at the face closer than this to the head's centre, metres...
@@ -82,34 +96,66 @@ impl Recogniser {
     }
 }
 
+/// What the recogniser has seen, for its summary.
+#[derive(Default)]
+struct Report {
+    recogniser: Recogniser,
+    samples: u64,
+    events: u64,
+    first: Option<u64>,
+    last: u64,
+    dropped: u64,
+}
+
+impl Report {
+    /// Handles one sample; `Next::Stop` at the end of the stream.
+    fn handle(&mut self, s: &TrajectorySample) -> Next {
+        if let Err(e) = s.validate() {
+            eprintln!("skipping a malformed sample: {e}");
+            return Next::Continue;
+        }
+        if s.is_end_of_stream() {
+            let range = self.first.map_or("none".to_string(), |f| format!("{f}..={}", self.last));
+            println!(
+                "summary: {} samples, frames {range}, {} dropped upstream, {} events",
+                self.samples, self.dropped, self.events
+            );
+            return Next::Stop;
+        }
+        self.samples += 1;
+        self.first.get_or_insert(s.frame);
+        self.last = s.frame;
+        self.dropped = s.dropped_frames;
+        for event in self.recogniser.observe(s) {
+            self.events += 1;
+            println!("frame {} t {:.3} s: {event}", s.frame, s.timestamp_s);
+        }
+        Next::Continue
+    }
+}
+
 fn main() -> Result<()> {
     let args = Args::parse();
+    let mut report = Report::default();
+    if let Some(endpoint) = &args.zenoh {
+        let remote = handflow_bridge::remote::RemoteTrajectories::connect(endpoint, args.rig.as_deref())?;
+        println!("listening on `{endpoint}` (Zenoh)");
+        while !ipc::stop_requested() {
+            match remote.next(Duration::from_millis(100)) {
+                Ok(Some(s)) if report.handle(&s) == Next::Stop => break,
+                Ok(_) => {}
+                Err(e) => eprintln!("skipping: {e:#}"),
+            }
+        }
+        return Ok(());
+    }
     let names = ServiceNames::new(&args.services);
     let node = ipc::create_node("sign-recogniser")?;
     let input = ipc::trajectories_input(&node, &names, args.mode)?;
     println!("listening on `{}`", names.trajectories());
-    let mut recogniser = Recogniser::default();
-    let (mut samples, mut events, mut first, mut last, mut dropped) = (0u64, 0u64, None, 0u64, 0u64);
     ipc::serve(&input, Duration::from_millis(100), |sample| -> Result<Next> {
         let s = *sample.payload();
-        if let Err(e) = s.validate() {
-            eprintln!("skipping a malformed sample: {e}");
-            return Ok(Next::Continue);
-        }
-        if s.is_end_of_stream() {
-            let range = first.map_or("none".to_string(), |f| format!("{f}..={last}"));
-            println!("summary: {samples} samples, frames {range}, {dropped} dropped upstream, {events} events");
-            return Ok(Next::Stop);
-        }
-        samples += 1;
-        first.get_or_insert(s.frame);
-        last = s.frame;
-        dropped = s.dropped_frames;
-        for event in recogniser.observe(&s) {
-            events += 1;
-            println!("frame {} t {:.3} s: {event}", s.frame, s.timestamp_s);
-        }
-        Ok(Next::Continue)
+        Ok(report.handle(&s))
     })?;
     Ok(())
 }

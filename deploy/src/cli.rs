@@ -254,8 +254,16 @@ struct RunArgs {
 
 #[derive(Args, Debug)]
 struct TapArgs {
-    /// Service: rig, frames, particles, clusters or trajectories.
+    /// Service: rig, frames, particles, clusters or trajectories (only trajectories with
+    /// `--zenoh`).
     service: String,
+    /// Read from a pipeline on another machine through its Zenoh bridge at this endpoint
+    /// (`tcp/<host>:<port>`, as its pipeline file's `[network] zenoh` listens).
+    #[arg(long)]
+    zenoh: Option<String>,
+    /// With `--zenoh`: the rig whose trajectories to read (default: every rig there).
+    #[arg(long, requires = "zenoh")]
+    rig: Option<String>,
     /// Prefix of the pipeline's service names.
     #[arg(long, default_value = handflow_protocol::ipc::DEFAULT_PREFIX)]
     services: String,
@@ -345,6 +353,12 @@ enum BenchCommand {
     /// The receiving process of `bench ipc`.
     #[command(hide = true)]
     IpcReceiver(IpcReceiverArgs),
+    /// Trajectory samples to a subscriber through iceoryx2 and to one behind the Zenoh bridge
+    /// (TCP on loopback), in one run: latency and sustained rate.
+    Hop(BenchHopArgs),
+    /// A receiving process of `bench hop`.
+    #[command(hide = true)]
+    HopReceiver(HopReceiverArgs),
     /// The live pipeline on a recording at its recorded rate: latency and sustained rate.
     Pipeline(BenchPipelineArgs),
     /// Reading a recording's videos into frame sets against reading the same frames as PNGs.
@@ -375,6 +389,30 @@ struct BenchIpcArgs {
     /// Print one JSON array instead of a table.
     #[arg(long)]
     json: bool,
+}
+
+#[derive(Args, Debug)]
+struct BenchHopArgs {
+    /// Samples sent at the steady rate, for latency.
+    #[arg(long, default_value_t = 2000)]
+    samples: usize,
+    /// The steady rate, samples per second.
+    #[arg(long, default_value_t = 200.0)]
+    rate: f64,
+    /// Samples then sent back to back, for the sustained rate.
+    #[arg(long, default_value_t = 20000)]
+    burst: usize,
+    /// Print one JSON array instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
+struct HopReceiverArgs {
+    #[arg(long)]
+    services: Option<String>,
+    #[arg(long)]
+    zenoh: Option<String>,
 }
 
 #[derive(Args, Debug)]
@@ -554,8 +592,9 @@ const TRACKER_LOG: &str =
     "warn,handflow_flow::stream=info,handflow_cluster::stage=info,handflow::commands=info,handflow::recording_engine=info";
 
 fn init_logging(default_level: &str) {
-    let filter = tracing_subscriber::EnvFilter::try_from_env("HANDFLOW_LOG")
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
+    let filter = tracing_subscriber::EnvFilter::try_from_env("HANDFLOW_LOG").unwrap_or_else(|_| {
+        tracing_subscriber::EnvFilter::new(format!("{default_level},{}", handflow_protocol::ipc::ZENOH_LOG))
+    });
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
@@ -571,9 +610,19 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Import(args)) => import(&args),
         Some(Command::Run(args)) => run_streaming(&args),
         Some(Command::Record(args)) => record_live(&args),
-        Some(Command::Tap(args)) => {
-            crate::commands::tap::tap(&args.service, &args.services, args.count, &mut std::io::stdout().lock())
-        }
+        Some(Command::Tap(args)) => match &args.zenoh {
+            Some(endpoint) if args.service == "trajectories" => crate::commands::tap::tap_zenoh(
+                endpoint,
+                args.rig.as_deref(),
+                args.count,
+                &mut std::io::stdout().lock(),
+            ),
+            Some(_) => anyhow::bail!(
+                "`--zenoh` reads `trajectories` only (the bridge forwards clusters and particle sets on request; \
+                 subscribe to `handflow/<rig>/clusters` with any Zenoh client)"
+            ),
+            None => crate::commands::tap::tap(&args.service, &args.services, args.count, &mut std::io::stdout().lock()),
+        },
         Some(Command::Eval(EvalCommand::Middlebury(args))) => eval_middlebury(&args),
         Some(Command::Eval(EvalCommand::Skin(args))) => eval_skin(&args),
         Some(Command::Bench(BenchCommand::Flow(args))) => bench_flow(&args),
@@ -586,6 +635,10 @@ fn run(cli: Cli) -> Result<()> {
             crate::bench::stream::ipc_receiver(&args.services, args.samples)
         }
         Some(Command::Bench(BenchCommand::Pipeline(args))) => bench_pipeline(&args),
+        Some(Command::Bench(BenchCommand::Hop(args))) => bench_hop(&args),
+        Some(Command::Bench(BenchCommand::HopReceiver(args))) => {
+            crate::bench::hop::hop_receiver(args.services.as_deref(), args.zenoh.as_deref())
+        }
         Some(Command::Render(args)) => render(&args),
         Some(Command::Track(args)) => track(&args),
         Some(Command::Overlay(args)) => overlay(&args),
@@ -621,6 +674,43 @@ fn bench_ipc(args: &BenchIpcArgs) -> Result<()> {
             r.copy_p50_us,
             r.copy_over_hop
         );
+    }
+    Ok(())
+}
+
+fn bench_hop(args: &BenchHopArgs) -> Result<()> {
+    anyhow::ensure!(args.rate > 0.0 && args.rate.is_finite(), "--rate: a positive number of samples per second");
+    let results = crate::bench::hop::bench_hop(args.samples, args.rate, args.burst)?;
+    if args.json {
+        out!("{}", serde_json::to_string(&results)?);
+        return Ok(());
+    }
+    out!(
+        "trajectory samples, publisher -> subscriber in another process; zenoh = via handflow-bridge, TCP on loopback"
+    );
+    out!("{} samples at {} per second, then {} back to back", args.samples, args.rate, args.burst);
+    out!(
+        "{:>9} {:>14} {:>10} {:>10} {:>16} {:>12}",
+        "transport",
+        "received",
+        "p50 us",
+        "p99 us",
+        "burst received",
+        "burst /s"
+    );
+    for r in &results {
+        out!(
+            "{:>9} {:>14} {:>10.1} {:>10.1} {:>16} {:>12.0}",
+            r.transport,
+            format!("{}/{}", r.received, r.sent),
+            r.p50_us,
+            r.p99_us,
+            format!("{}/{}", r.burst_received, r.burst_sent),
+            r.burst_per_s
+        );
+    }
+    if let [ipc, zenoh] = &results[..] {
+        out!("zenoh / iceoryx2 latency: p50 {:.1}x, p99 {:.1}x", zenoh.p50_us / ipc.p50_us, zenoh.p99_us / ipc.p99_us);
     }
     Ok(())
 }

@@ -6,42 +6,18 @@
 
 #![allow(clippy::unwrap_used)]
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc::{channel, Receiver};
-use std::time::{Duration, Instant};
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
-use handflow_e2e::{binaries_dir, render_preset, unique_prefix};
+use handflow_e2e::{binaries_dir, render_preset, spawn_lines, unique_prefix, LineProcess};
 
-/// Starts a subscriber and waits until it listens; its stdout lines arrive on the receiver.
-fn start(mut command: Command) -> (Child, Receiver<String>) {
-    let mut child = command.stdout(Stdio::piped()).stderr(Stdio::inherit()).spawn().unwrap();
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    let first = rx.recv_timeout(Duration::from_secs(30)).expect("the subscriber starts");
+/// Starts a subscriber and waits until it listens.
+fn start(command: Command) -> LineProcess {
+    let process = spawn_lines(command);
+    let first = process.next_line(Duration::from_secs(30));
     assert!(first.starts_with("listening on"), "{first}");
-    (child, rx)
-}
-
-fn finish(mut child: Child, rx: &Receiver<String>) -> Vec<String> {
-    let started = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(started.elapsed() < Duration::from_secs(60), "the subscriber did not see the end of the stream");
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    assert!(status.success());
-    rx.try_iter().collect()
+    process
 }
 
 fn python_has_iceoryx2() -> bool {
@@ -66,7 +42,7 @@ fn rust_and_python_recognisers_get_every_sample_and_see_the_hands_cross() {
 
     let mut rust = Command::new(env!("CARGO_BIN_EXE_sign-recogniser"));
     rust.args(["--services", &prefix]);
-    let (rust_child, rust_rx) = start(rust);
+    let rust_process = start(rust);
     let python = python_has_iceoryx2().then(|| {
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("sign_recogniser.py");
         let mut py = Command::new("python3");
@@ -84,12 +60,12 @@ fn rust_and_python_recognisers_get_every_sample_and_see_the_hands_cross() {
     let published = std::fs::read_to_string(&out).unwrap().lines().count();
     assert_eq!(published, frames as usize - 1);
     let expected_summary = format!("summary: {published} samples, frames 1..={}, 0 dropped upstream", frames - 1);
-    let rust_lines = finish(rust_child, &rust_rx);
+    let rust_lines = rust_process.finish(Duration::from_secs(60));
     let summary = rust_lines.last().unwrap();
     assert!(summary.starts_with(&expected_summary), "{summary}");
     assert!(rust_lines.iter().any(|l| l.ends_with("hands crossed")), "{rust_lines:?}");
-    if let Some((child, rx)) = python {
-        let python_lines = finish(child, &rx);
+    if let Some(process) = python {
+        let python_lines = process.finish(Duration::from_secs(60));
         assert_eq!(python_lines, rust_lines, "both recognisers report the same");
     }
 }

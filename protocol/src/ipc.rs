@@ -29,13 +29,18 @@ pub type Ipc = ipc::Service;
 /// A node of the transport.
 pub type IpcNode = Node<Ipc>;
 
+/// Zenoh's own log, kept to errors unless `RUST_LOG` says otherwise: it warns at every retry
+/// of a connection to an endpoint that is not up yet, which subscribers started before
+/// their pipeline do by design.
+pub const ZENOH_LOG: &str = "zenoh=error";
+
 /// Logs of a stage process to standard error (the launcher passes them on), at the level
 /// `RUST_LOG` gives (default `info`); each line names its stage by its crate
 /// (`handflow_flow: ...`). Colours only on a terminal.
 pub fn init_logging() {
     use std::io::IsTerminal;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("info,{ZENOH_LOG}")));
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_ansi(std::io::stderr().is_terminal())

@@ -4,7 +4,8 @@
 //! k1 k2 p1 p2 k3 distortion, world-to-camera pose) and [`Rig`] with its TOML
 //! file format (the per-camera tables written by anipose and Pose2Sim).
 //! [`messages`] are the zero-copy message types the stages exchange and [`ipc`] the
-//! services they travel on (names, settings per delivery mode, ports).
+//! services they travel on (names, settings per delivery mode, ports); [`wire`] is the same
+//! messages as bytes for networks.
 //!
 //! Conventions (see DESIGN.md, "Coordinates and units"): the world frame is
 //! right-handed in metres, `x_cam = R x_world + t`, and pixels are `K` applied
@@ -15,5 +16,6 @@
 pub mod ipc;
 pub mod messages;
 pub mod rig;
+pub mod wire;
 
 pub use rig::{Camera, Distortion, Ray, Rig, RigError, RigFormat, UpSource, WorldUp};

@@ -1,7 +1,11 @@
 //! Helpers for handflow's end-to-end tests: where the shared test data lives, and how to
 //! make small scenes from it.
 
+use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc::{channel, Receiver};
+use std::time::{Duration, Instant};
 
 /// The Middlebury Teddy scene (`../shared/data/middlebury/teddy` from the repository root),
 /// or `None` with a message when this clone does not have it.
@@ -31,7 +35,9 @@ pub fn binaries_dir() -> PathBuf {
     let exe = std::env::current_exe().expect("the test knows its path");
     // target/<profile>/deps/<test> -> target/<profile>
     let dir = exe.parent().and_then(|d| d.parent()).expect("test binary inside target/<profile>/deps").to_path_buf();
-    for name in ["handflow", "handflow-ingest", "handflow-flow", "handflow-cluster", "handflow-publish"] {
+    for name in
+        ["handflow", "handflow-ingest", "handflow-flow", "handflow-cluster", "handflow-publish", "handflow-bridge"]
+    {
         assert!(
             dir.join(name).is_file(),
             "`{}` is missing: run the tests with `cargo test --workspace`, which builds every binary",
@@ -76,4 +82,52 @@ pub fn pids_of(binary: &str, needle: &str) -> Vec<i32> {
             is_binary && args.contains(&needle.as_bytes())
         })
         .collect()
+}
+
+/// A process whose standard output arrives line by line (a subscriber, `handflow tap`).
+pub struct LineProcess {
+    /// The process.
+    pub child: Child,
+    /// Its standard output, one line per message.
+    pub lines: Receiver<String>,
+}
+
+/// Starts `command` with its standard output read line by line (standard error inherited).
+pub fn spawn_lines(mut command: Command) -> LineProcess {
+    let mut child = command.stdout(Stdio::piped()).stderr(Stdio::inherit()).spawn().expect("the process starts");
+    let stdout = child.stdout.take().expect("piped standard output");
+    let (tx, lines) = channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    LineProcess { child, lines }
+}
+
+impl LineProcess {
+    /// The next line, which must come within `timeout`.
+    pub fn next_line(&self, timeout: Duration) -> String {
+        self.lines.recv_timeout(timeout).expect("the process prints its next line in time")
+    }
+
+    /// Waits (at most `timeout`) for the process to exit successfully; returns the lines it
+    /// printed that were not read yet.
+    pub fn finish(mut self, timeout: Duration) -> Vec<String> {
+        let started = Instant::now();
+        let status = loop {
+            if let Some(s) = self.child.try_wait().expect("waiting for the process") {
+                break s;
+            }
+            if started.elapsed() > timeout {
+                let _ = self.child.kill();
+                panic!("the process did not end within {timeout:?}");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        assert!(status.success(), "the process failed: {status}");
+        self.lines.try_iter().collect()
+    }
 }

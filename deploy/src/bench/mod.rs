@@ -2,4 +2,5 @@
 
 pub mod cluster;
 pub mod decode;
+pub mod hop;
 pub mod stream;

@@ -25,6 +25,11 @@
 //! services = "handflow"            # prefix of the iceoryx2 service names
 //! variant = "handflow"             # or "paper"
 //! max_restarts = 5                 # per stage, before the run gives up
+//!
+//! [network]                        # off unless given: trajectories to other machines
+//! zenoh = { listen = "tcp/127.0.0.1:7447" }   # or connect = "tcp/router:7447"; also
+//! #   rig = "studio-a"               # key expressions handflow/<rig>/... (default: the source's name)
+//! #   topics = ["clusters", "particles"]     # forwarded besides the trajectories
 //! ```
 //!
 //! A run that is not looped (or has a fixed number of frames) ends when the publisher has published the end of the stream
@@ -80,6 +85,32 @@ pub struct Pipeline {
     pub variant: String,
     /// Restarts per stage before the run gives up.
     pub max_restarts: u32,
+    /// Where the trajectories go beyond this machine.
+    pub network: Network,
+}
+
+/// The `[network]` table.
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Network {
+    /// The Zenoh bridge: started when this names an endpoint.
+    pub zenoh: Option<ZenohSettings>,
+}
+
+/// `[network] zenoh = { ... }`.
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZenohSettings {
+    /// Endpoint the bridge listens on, `tcp/<host>:<port>` (loopback unless the user says
+    /// otherwise).
+    pub listen: Option<String>,
+    /// Endpoint the bridge connects to (a Zenoh router).
+    pub connect: Option<String>,
+    /// The rig's name in the key expressions (default: the recording's folder, the preset,
+    /// or the calibration's folder).
+    pub rig: Option<String>,
+    /// Topics forwarded besides the trajectories: `clusters`, `particles`.
+    pub topics: Vec<String>,
 }
 
 impl Default for Pipeline {
@@ -102,6 +133,7 @@ impl Default for Pipeline {
             services: ipc::DEFAULT_PREFIX.into(),
             variant: "handflow".into(),
             max_restarts: 5,
+            network: Network::default(),
         }
     }
 }
@@ -158,7 +190,45 @@ impl Pipeline {
         if self.services.is_empty() || self.services.contains(char::is_whitespace) {
             bail!("field `services`: `{}` is not a usable name prefix", self.services);
         }
+        if let Some(z) = &self.network.zenoh {
+            if z.listen.is_none() && z.connect.is_none() {
+                bail!(
+                    "`[network] zenoh`: give `listen` (for example \"{}\") or `connect`",
+                    handflow_bridge::DEFAULT_ENDPOINT
+                );
+            }
+            for (field, endpoint) in [("listen", &z.listen), ("connect", &z.connect)] {
+                if let Some(endpoint) = endpoint {
+                    handflow_bridge::check_endpoint(endpoint).with_context(|| format!("`[network] zenoh.{field}`"))?;
+                }
+            }
+            for topic in &z.topics {
+                topic
+                    .parse::<handflow_bridge::Topic>()
+                    .map_err(anyhow::Error::msg)
+                    .context("`[network] zenoh.topics`")?;
+            }
+            if let Some(rig) = &z.rig {
+                handflow_bridge::check_rig_name(rig).context("`[network] zenoh.rig`")?;
+            }
+        }
         Ok(())
+    }
+
+    /// The rig's name on the network: the one given, else the recording's folder name, the
+    /// preset, or the calibration's folder name.
+    pub fn rig_name(&self) -> String {
+        if let Some(rig) = self.network.zenoh.as_ref().and_then(|z| z.rig.clone()) {
+            return rig;
+        }
+        let from_path = |p: &Path| p.file_name().map(|n| n.to_string_lossy().into_owned());
+        let name = match (&self.recording, &self.preset, &self.calibration) {
+            (Some(r), _, _) => from_path(r),
+            (None, Some(preset), _) => Some(preset.clone()),
+            (None, None, Some(c)) => c.parent().and_then(from_path),
+            _ => None,
+        };
+        handflow_bridge::rig_name_from(&name.unwrap_or_else(|| "live".into()))
     }
 
     /// Whether the run ends by itself (not looped, or a fixed number of frame sets).
@@ -282,6 +352,27 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     if p.ends() {
         publish_args.push("--exit-at-end".into());
     }
+    let bridge_args = p.network.zenoh.as_ref().map(|z| {
+        let mut args = vec!["--rig".to_string(), p.rig_name()];
+        if let Some(endpoint) = &z.listen {
+            args.extend(["--listen".into(), endpoint.clone()]);
+        }
+        if let Some(endpoint) = &z.connect {
+            args.extend(["--connect".into(), endpoint.clone()]);
+        }
+        if !z.topics.is_empty() {
+            args.extend(["--topics".into(), z.topics.join(",")]);
+        }
+        if p.ends() {
+            args.push("--exit-at-end".into());
+        }
+        args
+    });
+    // A replay forwards every sample: the publisher waits for the bridge's subscription
+    // before its first sample (live, it does not wait for anyone).
+    if bridge_args.is_some() && p.mode == "replay" {
+        publish_args.extend(["--subscribers".into(), "1".into()]);
+    }
     // Downstream first, so each stage finds its subscriber waiting.
     let mut stages = vec![
         Stage {
@@ -313,6 +404,19 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
             restarts: 0,
         },
     ];
+    if let Some(args) = bridge_args {
+        // First, so it subscribes before anything is published.
+        stages.insert(
+            0,
+            Stage {
+                name: BRIDGE,
+                program: stage_binary(&dir, "handflow-bridge")?,
+                args: common(args),
+                child: None,
+                restarts: 0,
+            },
+        );
+    }
     let node = ipc::create_node("handflow-run")?;
     let cleaned = ipc::cleanup_dead_nodes(&node);
     if cleaned > 0 {
@@ -320,7 +424,7 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     }
     let started = Instant::now();
     let outcome = supervise(&node, &mut stages, p);
-    stop_all(&mut stages);
+    stop_all(&mut stages, matches!(outcome, Ok(true)));
     let _ = std::fs::remove_file(&resume_file);
     let completed = outcome?;
     Ok(RunReport {
@@ -350,6 +454,17 @@ fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline) -> Result<
                 tracing::info!("the stream has ended: stopping the other stages");
                 return Ok(true);
             }
+            if stage.name == BRIDGE && p.ends() && status.success() {
+                continue;
+            }
+            if stage.name == BRIDGE && stage.restarts >= p.max_restarts {
+                // The network is an extra: the local pipeline goes on without it.
+                tracing::error!(
+                    "the Zenoh bridge ended ({status}) after {} restarts: going on without it",
+                    stage.restarts
+                );
+                continue;
+            }
             restart(node, stage, status, p.max_restarts)?;
         }
     }
@@ -370,9 +485,25 @@ fn restart(node: &ipc::IpcNode, stage: &mut Stage, status: ExitStatus, max_resta
     stage.start()
 }
 
+/// The optional stage that forwards trajectories to Zenoh.
+const BRIDGE: &str = "bridge";
+
+/// How long the bridge gets, after the stream ended, to forward its last samples.
+const BRIDGE_DRAIN: Duration = Duration::from_secs(2);
+
 /// SIGTERM to every stage still running, then SIGKILL to those that have not stopped
 /// within [`STOP_GRACE`].
-fn stop_all(stages: &mut [Stage]) {
+fn stop_all(stages: &mut [Stage], stream_ended: bool) {
+    // The bridge exits by itself once it has forwarded the end of the stream.
+    if let Some(bridge) = stages.iter_mut().find(|s| s.name == BRIDGE && stream_ended) {
+        let deadline = Instant::now() + BRIDGE_DRAIN;
+        while let Some(child) = bridge.child.as_mut() {
+            if !matches!(child.try_wait(), Ok(None)) || Instant::now() >= deadline {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
     for stage in stages.iter() {
         if let Some(pid) = stage.pid() {
             let _ = kill(pid, Signal::SIGTERM);
@@ -449,6 +580,27 @@ mod tests {
         let e = load(format!("recording = \"rec\"\ncalibration = \"rig.toml\"\n{}", camera("a", "gst:videotestsrc")))
             .unwrap_err();
         assert!(e.contains("not several"), "{e}");
+    }
+
+    #[test]
+    fn a_network_table_names_a_tcp_endpoint_and_known_topics_and_gives_the_rig_a_key_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.toml");
+        let load = |network: &str| {
+            std::fs::write(&path, format!("recording = \"sessions/studio a\"\n[network]\n{network}\n")).unwrap();
+            Pipeline::load(&path).map_err(|e| format!("{e:#}"))
+        };
+        let p = load("zenoh = { listen = \"tcp/127.0.0.1:7447\", topics = [\"clusters\"] }").unwrap();
+        assert_eq!(p.rig_name(), "studio_a");
+        assert_eq!(p.network.zenoh.as_ref().unwrap().topics, ["clusters"]);
+        assert!(load("zenoh = { }").unwrap_err().contains("give `listen`"));
+        assert!(load("zenoh = { listen = \"udp/127.0.0.1:7447\" }").unwrap_err().contains("zenoh.listen"));
+        assert!(load("zenoh = { connect = \"tcp/h:1\", topics = [\"frames\"] }").unwrap_err().contains("`frames`"));
+        assert!(load("zenoh = { listen = \"tcp/h:1\", rig = \"a/b\" }").unwrap_err().contains("zenoh.rig"));
+        assert!(load("zenoh = { listen = \"tcp/h:1\", port = 3 }").unwrap_err().contains("port"));
+        let named = load("zenoh = { connect = \"tcp/h:1\", rig = \"studio-b\" }").unwrap();
+        assert_eq!(named.rig_name(), "studio-b");
+        assert!(load("").unwrap().network.zenoh.is_none());
     }
 
     #[test]

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Result};
 use handflow_protocol::ipc::{self, Next, ServiceNames, SERVICE_SUFFIXES};
-use handflow_protocol::messages::{track_state, TrajectoryObject, OBJECT_LABELS};
+use handflow_protocol::messages::{track_state, TrajectoryObject, TrajectorySample, OBJECT_LABELS};
 
 /// Prints up to `count` messages (all, until interrupted, when `None`) of service `suffix`
 /// (`rig`, `frames`, `particles`, `clusters` or `trajectories`) of the pipeline `prefix`.
@@ -94,24 +94,48 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
             ipc::serve(&input, idle, |s| {
                 let t = *s.payload();
                 let check = t.validate().map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
-                if t.is_end_of_stream() {
-                    return line(format!("trajectories seq {} END OF STREAM{check}", t.sequence));
-                }
-                let objects: Vec<String> =
-                    OBJECT_LABELS.iter().zip(&t.objects).map(|(l, o)| fmt_object(l, o)).collect();
-                line(format!(
-                    "trajectories seq {} frame {} t {:.3} s: {} | latency {:.1} ms, {} dropped{check}",
-                    t.sequence,
-                    t.frame,
-                    t.timestamp_s,
-                    objects.join(" | "),
-                    t.published_unix_ns.saturating_sub(t.capture_unix_ns) as f64 * 1e-6,
-                    t.dropped_frames
-                ))
+                line(format!("{}{check}", trajectory_line(&t)))
             })
         }
         other => bail!("unknown service `{other}` (services: {})", SERVICE_SUFFIXES.join(", ")),
     }
+}
+
+/// One trajectory sample as a line.
+fn trajectory_line(t: &TrajectorySample) -> String {
+    if t.is_end_of_stream() {
+        return format!("trajectories seq {} END OF STREAM", t.sequence);
+    }
+    let objects: Vec<String> = OBJECT_LABELS.iter().zip(&t.objects).map(|(l, o)| fmt_object(l, o)).collect();
+    format!(
+        "trajectories seq {} frame {} t {:.3} s: {} | latency {:.1} ms, {} dropped",
+        t.sequence,
+        t.frame,
+        t.timestamp_s,
+        objects.join(" | "),
+        t.published_unix_ns.saturating_sub(t.capture_unix_ns) as f64 * 1e-6,
+        t.dropped_frames
+    )
+}
+
+/// Prints up to `count` trajectory samples (all, until interrupted, when `None`) of a
+/// pipeline on another machine, read through the Zenoh bridge at `endpoint`; `rig` picks one
+/// rig when several publish there. A sample that does not decode is reported and skipped.
+pub fn tap_zenoh(endpoint: &str, rig: Option<&str>, count: Option<u64>, out: &mut dyn Write) -> Result<()> {
+    let remote = handflow_bridge::remote::RemoteTrajectories::connect(endpoint, rig)?;
+    eprintln!("subscribed to the trajectories behind `{endpoint}`; waiting for samples");
+    let mut seen = 0u64;
+    while !ipc::stop_requested() && count.is_none_or(|n| seen < n) {
+        match remote.next(Duration::from_millis(200)) {
+            Ok(Some(t)) => {
+                writeln!(out, "{}", trajectory_line(&t))?;
+                seen += 1;
+            }
+            Ok(None) => {}
+            Err(e) => eprintln!("skipped: {e:#}"),
+        }
+    }
+    Ok(())
 }
 
 /// Opens the service, waiting for the pipeline to create it.

@@ -23,10 +23,17 @@ struct Args {
     /// Exit (status 0) after the end of the stream has been published.
     #[arg(long)]
     exit_at_end: bool,
+    /// Before the first sample, wait (at most 10 s) for this many subscribers of the
+    /// trajectories: the launcher's Zenoh bridge in a replay, which must not miss the start.
+    #[arg(long, default_value_t = 0)]
+    subscribers: usize,
     /// Prefix of the service names.
     #[arg(long, default_value = ipc::DEFAULT_PREFIX)]
     services: String,
 }
+
+/// How long the publisher waits for the subscribers it was told to expect.
+const SUBSCRIBER_WAIT: Duration = Duration::from_secs(10);
 
 fn main() {
     ipc::init_logging();
@@ -66,6 +73,17 @@ fn run(args: Args) -> Result<()> {
         args.out.as_ref().map(|p| format!(" and in `{}`", p.display())).unwrap_or_default(),
         args.mode
     );
+    if args.subscribers > 0
+        && !trajectories.wait_for_subscribers(&node, args.subscribers, SUBSCRIBER_WAIT)
+        && !ipc::stop_requested()
+    {
+        tracing::warn!(
+            "{} of {} expected subscriber(s) of `{}` after {SUBSCRIBER_WAIT:?}: publishing without them",
+            trajectories.subscribers(),
+            args.subscribers,
+            trajectories.name()
+        );
+    }
     let mut gaps = SequenceGaps::default();
     let mut published = 0u64;
     let mut latencies = Latencies::default();
