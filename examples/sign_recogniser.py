@@ -22,7 +22,7 @@ import json
 import math
 import sys
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 END_OF_STREAM = 1
 LOST = 2
 # A hand is at the face closer than this to the head's centre (metres), and leaves it
@@ -59,6 +59,8 @@ class TrajectorySample(ctypes.Structure):
         ("capture_unix_ns", ctypes.c_uint64),
         ("published_unix_ns", ctypes.c_uint64),
         ("dropped_frames", ctypes.c_uint64),
+        ("missing_views", ctypes.c_uint32),  # bit k: camera k had no view in this frame set
+        ("reserved", ctypes.c_uint32),
         ("objects", TrajectoryObject * 3),  # head, left hand, right hand
     ]
 

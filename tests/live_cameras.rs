@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use handflow::eval::tracks::{evaluate_tracks, read_tracks};
-use handflow_e2e::{binaries_dir, render_preset, unique_prefix};
+use handflow_e2e::{binaries_dir, render_preset, spawn_lines, unique_prefix};
 use handflow_ingest::Recording;
 
 static ONE_PIPELINE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -261,9 +261,22 @@ fn a_live_stream_goes_on_without_a_camera_that_stops_and_keeps_tracking() {
     limits[stopping] = Some(20);
     let videos = encode_cameras_up_to(&rec, 10, &limits);
     let (file, out) = write_pipeline(dir.path(), "live", &rec, "live-stop", &video_sources(&videos), 10);
+    // The cameras' health, as `handflow tap cameras` shows it while the stream runs.
+    let services = handflow::commands::launcher::Pipeline::load(&file).unwrap().services;
+    let mut tap = Command::new(binaries_dir().join("handflow"));
+    tap.args(["tap", "cameras", "--services", &services]).stderr(Stdio::null());
+    let mut tap = spawn_lines(tap);
     let (ok, log) = run_pipeline(&file, Duration::from_secs(240));
     assert!(ok, "the run failed:\n{log}");
     assert!(log.contains("went on without a camera"), "{log}");
+    let _ = tap.child.kill();
+    let health: Vec<String> = tap.lines.try_iter().collect();
+    let stopped = &rig.cameras[stopping].name;
+    assert!(
+        health.iter().any(|l| l.contains(&format!("{stopped} ended")) && l.contains("sets missed")),
+        "the stopped camera shows as ended: {health:?}"
+    );
+    assert!(health.iter().any(|l| l.contains(" running ") && l.contains("frames/s")), "{health:?}");
     let records = read_tracks(&out).unwrap();
     let mut mapped = records.clone();
     for r in &mut mapped {
@@ -278,4 +291,8 @@ fn a_live_stream_goes_on_without_a_camera_that_stops_and_keeps_tracking() {
     assert!(scores.head.rmse_3d_m < 0.08, "{scores:?}");
     assert!(scores.left_hand.agreement >= 0.85 && scores.right_hand.agreement >= 0.85, "{scores:?}");
     assert!(after.iter().all(|r| r.objects["head"].pos.iter().all(|v| v.is_finite())));
+    // Each sample says which camera it went without: none before the stop, the stopped
+    // camera (alone) after it.
+    assert!(mapped.iter().filter(|r| r.frame < 15).all(|r| r.missing_views == 0), "{records:?}");
+    assert!(after.iter().all(|r| r.missing_views == 1 << stopping), "{after:?}");
 }

@@ -22,7 +22,9 @@ use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
 use iceoryx2::service::port_factory::PortFactory as _;
 use thiserror::Error;
 
-use crate::messages::{ClusterSet, FrameHeader, ParticleHeader, RigHeader, ScenePoint, TrajectorySample};
+use crate::messages::{
+    CameraStatusSet, ClusterSet, FrameHeader, ParticleHeader, RigHeader, ScenePoint, TrajectorySample,
+};
 
 /// The transport: processes on one machine.
 pub type Ipc = ipc::Service;
@@ -121,7 +123,7 @@ impl Default for ServiceNames {
 }
 
 /// Suffixes of the services, in pipeline order.
-pub const SERVICE_SUFFIXES: [&str; 5] = ["rig", "frames", "particles", "clusters", "trajectories"];
+pub const SERVICE_SUFFIXES: [&str; 6] = ["rig", "cameras", "frames", "particles", "clusters", "trajectories"];
 
 impl ServiceNames {
     /// The services under `prefix`.
@@ -142,6 +144,11 @@ impl ServiceNames {
     /// Rig calibration.
     pub fn rig(&self) -> String {
         self.full("rig")
+    }
+
+    /// Live cameras' health.
+    pub fn cameras(&self) -> String {
+        self.full("cameras")
     }
 
     /// Frame sets.
@@ -434,6 +441,18 @@ fn rig_service(node: &Node<Ipc>, name: &str) -> Result<PortFactory<Ipc, [u8], Ri
     Ok(open_service!(node, name, [u8], RigHeader, settings, true))
 }
 
+/// The live cameras' health is state, like the rig: latest wins, and a late subscriber gets
+/// the last one.
+const CAMERAS: Settings = Settings { max_subscribers: 32, buffer: 2, live_buffer: 2, borrowed: 2, history: 1 };
+
+/// Publisher of the live cameras' health.
+pub fn cameras_output(node: &Node<Ipc>, names: &ServiceNames) -> Result<Output<CameraStatusSet, ()>, IpcError> {
+    let name = names.cameras();
+    let service = open_service!(node, &name, CameraStatusSet, (), CAMERAS, true);
+    let publisher = service.publisher_builder().backpressure_strategy(BackpressureStrategy::DiscardData).create();
+    output(node, name, service, publisher)
+}
+
 /// Publisher of frame sets of `frame_set_len` bytes.
 pub fn frames_output(
     node: &Node<Ipc>,
@@ -543,6 +562,7 @@ macro_rules! tap_input {
 
 tap_input!(tap_rig, [u8], RigHeader, "the rig calibration");
 tap_input!(tap_frames, [u8], FrameHeader, "frame sets");
+tap_input!(tap_cameras, CameraStatusSet, (), "the live cameras' health");
 tap_input!(tap_particles, [ScenePoint], ParticleHeader, "particle sets");
 tap_input!(tap_clusters, ClusterSet, (), "labelled clusters");
 tap_input!(tap_trajectories, TrajectorySample, (), "trajectory samples");

@@ -19,7 +19,7 @@ use iceoryx2::prelude::ZeroCopySend;
 use thiserror::Error;
 
 /// Version of the wire format; a stage refuses messages of any other version.
-pub const PROTOCOL_VERSION: u32 = 2;
+pub const PROTOCOL_VERSION: u32 = 3;
 
 /// `flags` bit: the stream has ended; the message carries no data (an empty payload).
 pub const END_OF_STREAM: u32 = 1;
@@ -263,8 +263,9 @@ pub struct ParticleHeader {
     pub reference_camera: u32,
     /// 1 when the face fields hold a face the detection rounds placed in 3D, else 0.
     pub face_known: u32,
-    /// Reserved, 0.
-    pub reserved: u32,
+    /// Views the frame set went without ([`FrameHeader::missing_views`]): a live camera
+    /// that stopped or fell behind.
+    pub missing_views: u32,
     /// Centre of that face, world metres.
     pub face_centre_m: [f64; 3],
     /// Physical width of the face detector's box, metres.
@@ -308,6 +309,105 @@ impl ParticleHeader {
         }
         if self.face_known == 1 && !(self.face_width_m.is_finite() && self.face_width_m > 0.0) {
             return err("face_width_m", format!("is {}", self.face_width_m));
+        }
+        Ok(())
+    }
+}
+
+/// Most cameras a [`CameraStatusSet`] describes.
+pub const MAX_STATUS_CAMERAS: usize = 16;
+
+/// Camera states on the wire.
+pub mod camera_state {
+    /// Delivering frames.
+    pub const RUNNING: u32 = 0;
+    /// Its source ended (a video played as a camera).
+    pub const ENDED: u32 = 1;
+    /// It failed (unplugged, stream lost); the stream goes on without it.
+    pub const FAILED: u32 = 2;
+}
+
+/// One live camera's health since the stream started.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowCameraStatus")]
+pub struct CameraStatus {
+    /// The camera's name in the calibration, UTF-8, padded with zeros (cut at 32 bytes).
+    pub name: [u8; 32],
+    /// Frames per second delivered since the previous status.
+    pub rate_hz: f64,
+    /// Frames delivered.
+    pub delivered: u64,
+    /// Frames that went into frame sets.
+    pub used: u64,
+    /// Frames dropped: no frame set could take them, or they waited too long.
+    pub dropped: u64,
+    /// Frame sets that went on without this camera, or were dropped for the lack of it.
+    pub missed_sets: u64,
+    /// Capture time of its newest frame, nanoseconds since the Unix epoch (0: none yet).
+    pub last_capture_unix_ns: u64,
+    /// A [`camera_state`] constant.
+    pub state: u32,
+    /// Reserved, 0.
+    pub reserved: u32,
+}
+
+impl CameraStatus {
+    /// The name as text (up to the first zero byte; invalid UTF-8 replaced).
+    pub fn name(&self) -> String {
+        let end = self.name.iter().position(|&b| b == 0).unwrap_or(self.name.len());
+        String::from_utf8_lossy(&self.name[..end]).into_owned()
+    }
+
+    /// Sets the name, cut at 32 bytes on a character boundary.
+    pub fn set_name(&mut self, name: &str) {
+        let mut end = name.len().min(self.name.len());
+        while !name.is_char_boundary(end) {
+            end -= 1;
+        }
+        self.name = [0; 32];
+        self.name[..end].copy_from_slice(&name.as_bytes()[..end]);
+    }
+}
+
+/// The health of every live camera, published by ingest about once a second (history 1:
+/// a late subscriber gets the last one).
+#[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowCameraStatusSet")]
+pub struct CameraStatusSet {
+    /// [`PROTOCOL_VERSION`].
+    pub protocol_version: u32,
+    /// Cameras described, at most [`MAX_STATUS_CAMERAS`] (rig order).
+    pub camera_count: u32,
+    /// When the status was taken, nanoseconds since the Unix epoch.
+    pub published_unix_ns: u64,
+    /// Frame sets published so far.
+    pub frame_sets: u64,
+    /// The first `camera_count` cameras.
+    pub cameras: [CameraStatus; MAX_STATUS_CAMERAS],
+}
+
+impl CameraStatusSet {
+    /// Checks the version, the count, and every camera's numbers and state.
+    pub fn validate(&self) -> Result<(), MessageError> {
+        const KIND: &str = "camera status";
+        check_version(KIND, self.protocol_version)?;
+        if self.camera_count as usize > MAX_STATUS_CAMERAS {
+            return Err(field_error(
+                KIND,
+                self.frame_sets,
+                "camera_count",
+                format!("is {}, at most {MAX_STATUS_CAMERAS}", self.camera_count),
+            ));
+        }
+        for c in &self.cameras[..self.camera_count as usize] {
+            if !(c.rate_hz.is_finite() && c.rate_hz >= 0.0) {
+                return Err(field_error(KIND, self.frame_sets, "cameras", format!("{}: rate {}", c.name(), c.rate_hz)));
+            }
+            if c.state > camera_state::FAILED {
+                return Err(field_error(KIND, self.frame_sets, "cameras", format!("{}: state {}", c.name(), c.state)));
+            }
         }
         Ok(())
     }
@@ -362,6 +462,10 @@ pub struct ClusterSet {
     pub capture_unix_ns: u64,
     /// Seconds clustering and labelling took.
     pub cluster_seconds: f64,
+    /// Views the frame set went without ([`FrameHeader::missing_views`]).
+    pub missing_views: u32,
+    /// Reserved, 0.
+    pub reserved: u32,
     /// Head, left hand, right hand.
     pub objects: [LabelledCluster; 3],
 }
@@ -445,6 +549,11 @@ pub struct TrajectorySample {
     /// Frame sets lost anywhere upstream since the stream started (live mode drops, frames
     /// lost while a stage restarted).
     pub dropped_frames: u64,
+    /// Cameras (bit k: camera k of the rig) whose view this frame set went without: a live
+    /// camera that stopped or fell behind; 0 when every camera contributed.
+    pub missing_views: u32,
+    /// Reserved, 0.
+    pub reserved: u32,
     /// Head, left hand, right hand ([`OBJECT_LABELS`]).
     pub objects: [TrajectoryObject; 3],
 }
@@ -579,11 +688,29 @@ mod tests {
     }
 
     #[test]
+    fn camera_names_are_cut_on_a_character_boundary_and_statuses_are_checked() {
+        let mut c = CameraStatus::default();
+        c.set_name("cam_0");
+        assert_eq!(c.name(), "cam_0");
+        c.set_name(&"é".repeat(20));
+        assert_eq!(c.name(), "é".repeat(16));
+        let mut set = CameraStatusSet { protocol_version: PROTOCOL_VERSION, camera_count: 1, ..Default::default() };
+        set.cameras[0] = c;
+        set.validate().unwrap();
+        set.cameras[0].rate_hz = f64::NAN;
+        assert!(set.validate().unwrap_err().to_string().contains("rate"));
+        set.cameras[0].rate_hz = 30.0;
+        set.camera_count = 17;
+        assert!(matches!(set.validate(), Err(MessageError::Field { field: "camera_count", .. })));
+    }
+
+    #[test]
     fn fixed_size_messages_have_stable_sizes() {
         // Subscribers in other languages mirror these layouts.
         assert_eq!(std::mem::size_of::<ScenePoint>(), 32);
         assert_eq!(std::mem::size_of::<TrajectoryObject>(), 64);
-        assert_eq!(std::mem::size_of::<TrajectorySample>(), 56 + 3 * 64);
+        assert_eq!(std::mem::size_of::<TrajectorySample>(), 64 + 3 * 64);
+        assert_eq!(std::mem::size_of::<ClusterSet>(), 56 + 3 * 72);
         assert_eq!(std::mem::size_of::<LabelledCluster>(), 72);
     }
 }

@@ -11,9 +11,9 @@ use crate::messages::{
 };
 
 /// Bytes of a [`TrajectorySample`] on the wire.
-pub const TRAJECTORY_SAMPLE_BYTES: usize = 56 + 3 * 64;
+pub const TRAJECTORY_SAMPLE_BYTES: usize = 64 + 3 * 64;
 /// Bytes of a [`ClusterSet`] on the wire.
-pub const CLUSTER_SET_BYTES: usize = 48 + 3 * 72;
+pub const CLUSTER_SET_BYTES: usize = 56 + 3 * 72;
 /// Bytes of a [`ParticleHeader`] on the wire (its points follow).
 pub const PARTICLE_HEADER_BYTES: usize = 128;
 /// Bytes of a [`ScenePoint`] on the wire.
@@ -104,6 +104,8 @@ pub fn encode_trajectory_sample(s: &TrajectorySample) -> Vec<u8> {
     w.u64(s.capture_unix_ns);
     w.u64(s.published_unix_ns);
     w.u64(s.dropped_frames);
+    w.u32(s.missing_views);
+    w.u32(s.reserved);
     for o in &s.objects {
         w.f64s(&o.position);
         w.f64s(&o.velocity);
@@ -127,6 +129,8 @@ pub fn decode_trajectory_sample(bytes: &[u8]) -> Result<TrajectorySample, WireEr
         capture_unix_ns: r.u64(),
         published_unix_ns: r.u64(),
         dropped_frames: r.u64(),
+        missing_views: r.u32(),
+        reserved: r.u32(),
         ..TrajectorySample::default()
     };
     for o in &mut s.objects {
@@ -152,6 +156,8 @@ pub fn encode_cluster_set(c: &ClusterSet) -> Vec<u8> {
     w.f64(c.timestamp_s);
     w.u64(c.capture_unix_ns);
     w.f64(c.cluster_seconds);
+    w.u32(c.missing_views);
+    w.u32(c.reserved);
     for o in &c.objects {
         w.f64s(&o.position);
         w.f64s(&o.velocity);
@@ -175,6 +181,8 @@ pub fn decode_cluster_set(bytes: &[u8]) -> Result<ClusterSet, WireError> {
         timestamp_s: r.f64(),
         capture_unix_ns: r.u64(),
         cluster_seconds: r.f64(),
+        missing_views: r.u32(),
+        reserved: r.u32(),
         ..ClusterSet::default()
     };
     for o in &mut c.objects {
@@ -207,7 +215,7 @@ pub fn encode_particle_set(h: &ParticleHeader, points: &[ScenePoint]) -> Vec<u8>
     w.u32(h.rig_version);
     w.u32(h.reference_camera);
     w.u32(h.face_known);
-    w.u32(h.reserved);
+    w.u32(h.missing_views);
     w.f64s(&h.face_centre_m);
     w.f64(h.face_width_m);
     w.u64(h.face_age_frames);
@@ -245,7 +253,7 @@ pub fn decode_particle_set(bytes: &[u8]) -> Result<(ParticleHeader, Vec<ScenePoi
         rig_version: r.u32(),
         reference_camera: r.u32(),
         face_known: r.u32(),
-        reserved: r.u32(),
+        missing_views: r.u32(),
         face_centre_m: r.f64x3(),
         face_width_m: r.f64(),
         face_age_frames: r.u64(),
@@ -281,20 +289,32 @@ mod tests {
                 state,
                 reserved: 0,
             });
-        (any::<u64>(), any::<u64>(), finite(), any::<u64>(), any::<u64>(), any::<u64>(), prop::array::uniform3(object))
-            .prop_map(|(sequence, frame, timestamp_s, capture_unix_ns, published_unix_ns, dropped_frames, objects)| {
-                TrajectorySample {
-                    protocol_version: PROTOCOL_VERSION,
-                    flags: 0,
-                    sequence,
-                    frame,
-                    timestamp_s,
-                    capture_unix_ns,
-                    published_unix_ns,
-                    dropped_frames,
+        (
+            (any::<u64>(), any::<u64>(), finite(), any::<u64>()),
+            (any::<u64>(), any::<u64>(), any::<u32>()),
+            prop::array::uniform3(object),
+        )
+            .prop_map(
+                |(
+                    (sequence, frame, timestamp_s, capture_unix_ns),
+                    (published_unix_ns, dropped_frames, missing_views),
                     objects,
-                }
-            })
+                )| {
+                    TrajectorySample {
+                        protocol_version: PROTOCOL_VERSION,
+                        flags: 0,
+                        sequence,
+                        frame,
+                        timestamp_s,
+                        capture_unix_ns,
+                        published_unix_ns,
+                        dropped_frames,
+                        missing_views,
+                        reserved: 0,
+                        objects,
+                    }
+                },
+            )
     }
 
     proptest! {

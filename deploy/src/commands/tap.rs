@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Result};
 use handflow_protocol::ipc::{self, Next, ServiceNames, SERVICE_SUFFIXES};
-use handflow_protocol::messages::{track_state, TrajectoryObject, TrajectorySample, OBJECT_LABELS};
+use handflow_protocol::messages::{camera_state, track_state, TrajectoryObject, TrajectorySample, OBJECT_LABELS};
 
 /// Prints up to `count` messages (all, until interrupted, when `None`) of service `suffix`
 /// (`rig`, `frames`, `particles`, `clusters` or `trajectories`) of the pipeline `prefix`.
@@ -31,6 +31,37 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
                     "rig version {} at {:.2} frames/s, {} bytes of TOML{check}",
                     h.rig_version, h.frame_rate_hz, h.text_len
                 ))
+            })
+        }
+        "cameras" => {
+            let input = open_when_ready(&node, &name, ipc::tap_cameras)?;
+            ipc::serve(&input, idle, |s| {
+                let set = *s.payload();
+                let check = set.validate().map_or_else(|e| format!(" INVALID: {e}"), |_| String::new());
+                let cameras: Vec<String> = set.cameras[..(set.camera_count as usize).min(set.cameras.len())]
+                    .iter()
+                    .map(|c| {
+                        let age = if c.last_capture_unix_ns == 0 {
+                            "no frame yet".to_string()
+                        } else {
+                            format!("last frame {:.0} ms ago", ms_since(c.last_capture_unix_ns))
+                        };
+                        let state = match c.state {
+                            camera_state::RUNNING => "running",
+                            camera_state::ENDED => "ended",
+                            _ => "FAILED",
+                        };
+                        format!(
+                            "{} {state} {:.1} frames/s, {} delivered, {} dropped, {} sets missed, {age}",
+                            c.name(),
+                            c.rate_hz,
+                            c.delivered,
+                            c.dropped,
+                            c.missed_sets
+                        )
+                    })
+                    .collect();
+                line(format!("cameras after {} frame sets: {}{check}", set.frame_sets, cameras.join(" | ")))
             })
         }
         "frames" => {
@@ -107,8 +138,11 @@ fn trajectory_line(t: &TrajectorySample) -> String {
         return format!("trajectories seq {} END OF STREAM", t.sequence);
     }
     let objects: Vec<String> = OBJECT_LABELS.iter().zip(&t.objects).map(|(l, o)| fmt_object(l, o)).collect();
+    // A live camera that stopped or fell behind: the views this estimate went without.
+    let missing: Vec<String> = (0..32).filter(|k| t.missing_views & (1 << k) != 0).map(|k| k.to_string()).collect();
+    let missing = if missing.is_empty() { String::new() } else { format!(", views missing: {}", missing.join(", ")) };
     format!(
-        "trajectories seq {} frame {} t {:.3} s: {} | latency {:.1} ms, {} dropped",
+        "trajectories seq {} frame {} t {:.3} s: {} | latency {:.1} ms, {} dropped{missing}",
         t.sequence,
         t.frame,
         t.timestamp_s,

@@ -242,6 +242,7 @@ mod tests {
             t: frame as f64 / 30.0,
             objects: OBJECTS.iter().zip(objects).map(|(n, (p, s))| ((*n).to_owned(), sample(p, s))).collect(),
             dropped_frames: 0,
+            missing_views: 0,
         }
     }
 

@@ -65,6 +65,8 @@ pub struct TrajectoryJson {
     pub objects: BTreeMap<String, ObjectJson>,
     /// Frame sets lost upstream since the stream began.
     pub dropped_frames: u64,
+    /// Cameras (bit k: camera k) whose view this frame set went without.
+    pub missing_views: u32,
 }
 
 impl TrajectoryJson {
@@ -91,6 +93,7 @@ impl TrajectoryJson {
                 })
                 .collect(),
             dropped_frames: s.dropped_frames,
+            missing_views: s.missing_views,
         }
     }
 }

@@ -74,6 +74,7 @@ fn run(args: Args) -> Result<()> {
             frame: header.frame,
             timestamp_s: header.timestamp_s,
             capture_unix_ns: header.capture_unix_ns,
+            missing_views: header.missing_views,
             ..ClusterSet::default()
         };
         if header.is_end_of_stream() {

@@ -37,6 +37,7 @@ struct FrameMeta {
     frame: u64,
     timestamp_s: f64,
     capture_unix_ns: u64,
+    missing_views: u32,
 }
 
 fn main() {
@@ -127,6 +128,7 @@ fn run(args: Args) -> Result<()> {
             frame: header.frame,
             timestamp_s: header.timestamp_s,
             capture_unix_ns: header.capture_unix_ns,
+            missing_views: header.missing_views,
         };
         if !header.has_view(reference) {
             tracing::error!(
@@ -173,7 +175,7 @@ fn send_particles(
         rig_version,
         reference_camera: reference,
         face_known: u32::from(face.is_some()),
-        reserved: 0,
+        missing_views: meta.missing_views,
         face_centre_m: face.map_or([0.0; 3], |f| f.centre),
         face_width_m: face.map_or(0.0, |f| f.width_m),
         face_age_frames: face.map_or(0, |f| f.age_frames),

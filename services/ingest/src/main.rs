@@ -13,7 +13,10 @@ use handflow_ingest::live::{
 use handflow_ingest::synthetic::{Renderer, SceneSpec};
 use handflow_ingest::{OpenOptions, Recording};
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
-use handflow_protocol::messages::{FrameHeader, RigHeader, END_OF_STREAM, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION};
+use handflow_protocol::messages::{
+    camera_state, CameraStatusSet, FrameHeader, RigHeader, END_OF_STREAM, MAX_STATUS_CAMERAS, PIXEL_FORMAT_RGB8,
+    PROTOCOL_VERSION,
+};
 use handflow_protocol::Rig;
 
 #[derive(Parser, Debug)]
@@ -332,6 +335,8 @@ const DEFAULT_LIVE_FPS: f64 = 30.0;
 const FIRST_FRAME_TIMEOUT: Duration = Duration::from_secs(15);
 /// How often the cameras' rates, drops and ages are logged.
 const LIVE_REPORT_EVERY: Duration = Duration::from_secs(5);
+/// How often the cameras' health goes out on the `cameras` service.
+const STATUS_EVERY: Duration = Duration::from_secs(1);
 
 /// Live cameras: every camera of the calibration started from its `[[cameras]]` source,
 /// frames grouped into frame sets by capture time and published as they are decided. Live
@@ -404,6 +409,10 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     let rig_output = publish_rig(&node, &names, &rig, fps)?;
     let frame_set_len = cameras.len() * width as usize * height as usize * 3;
     let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
+    let status_output = ipc::cameras_output(&node, &names)?;
+    if cameras.len() > MAX_STATUS_CAMERAS {
+        tracing::warn!("the `cameras` service describes the first {MAX_STATUS_CAMERAS} of {} cameras", cameras.len());
+    }
     let stall_ns = match args.mode {
         Mode::Live => 4 * interval_ns,
         Mode::Replay => u64::MAX,
@@ -436,6 +445,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     let mut failed = vec![false; cameras.len()];
     let mut gone = vec![false; cameras.len()];
     let mut delivered = vec![0u64; cameras.len()];
+    let mut status = CameraHealth { delivered: vec![0; cameras.len()], since: Instant::now(), unix_offset };
     let mut unrecorded = 0u64;
     let reference = rig.most_frontal_camera();
     while sequence < total && !ipc::stop_requested() {
@@ -528,6 +538,9 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
             report_cameras(&cameras, &sync, &mut delivered, last_report.elapsed().as_secs_f64());
             last_report = Instant::now();
         }
+        if status.since.elapsed() >= STATUS_EVERY {
+            status.publish(&status_output, &cameras, &sync, &failed, sequence)?;
+        }
         if ended {
             tracing::info!("every camera's source has ended");
             break;
@@ -537,6 +550,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         }
     }
     report_cameras(&cameras, &sync, &mut delivered, last_report.elapsed().as_secs_f64());
+    status.publish(&status_output, &cameras, &sync, &failed, sequence)?;
     if let Some(writer) = recorder {
         let written = writer.written();
         let dir = writer.finish()?;
@@ -549,6 +563,61 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         tracing::warn!("{} frame sets went on without a camera that had no frame for them", sync.partial_sets());
     }
     end_stream(&node, &frames, &rig_output, sequence)
+}
+
+/// The live cameras' health for the `cameras` service.
+struct CameraHealth {
+    /// Each camera's delivered count at the last status.
+    delivered: Vec<u64>,
+    /// When the last status went out.
+    since: Instant,
+    /// Unix time minus the capture clock, nanoseconds.
+    unix_offset: i128,
+}
+
+impl CameraHealth {
+    /// Publishes every camera's health now; `frame_sets` published so far.
+    fn publish(
+        &mut self,
+        out: &ipc::Output<CameraStatusSet, ()>,
+        cameras: &[LiveCamera],
+        sync: &FrameSetSync,
+        failed: &[bool],
+        frame_sets: u64,
+    ) -> Result<()> {
+        let seconds = self.since.elapsed().as_secs_f64().max(1e-3);
+        self.since = Instant::now();
+        let mut set = CameraStatusSet {
+            protocol_version: PROTOCOL_VERSION,
+            camera_count: cameras.len().min(MAX_STATUS_CAMERAS) as u32,
+            published_unix_ns: ipc::unix_now_ns(),
+            frame_sets,
+            ..CameraStatusSet::default()
+        };
+        for (k, (camera, stats)) in cameras.iter().zip(sync.stats()).enumerate().take(MAX_STATUS_CAMERAS) {
+            let count = camera.delivered();
+            let status = &mut set.cameras[k];
+            status.set_name(camera.name());
+            status.rate_hz = (count - self.delivered[k].min(count)) as f64 / seconds;
+            self.delivered[k] = count;
+            status.delivered = count;
+            status.used = stats.used;
+            status.dropped = stats.dropped + camera.handover_dropped();
+            status.missed_sets = stats.missed_sets;
+            status.last_capture_unix_ns =
+                stats.last_capture_ns.map_or(0, |t| (t as i128 + self.unix_offset).max(0) as u64);
+            status.state = if failed[k] {
+                camera_state::FAILED
+            } else if camera.ended() {
+                camera_state::ENDED
+            } else {
+                camera_state::RUNNING
+            };
+        }
+        out.publisher.send_copy(set).context("sending the cameras' health")?;
+        out.notify()?;
+        Ok(())
+    }
 }
 
 /// One log line per camera: its rate over the last `seconds`, frames in sets and dropped,

@@ -54,6 +54,14 @@ pub struct TrajectoryRecord {
     /// stage); files written before this field existed read as 0.
     #[serde(default)]
     pub dropped_frames: u64,
+    /// Cameras (bit k: camera k) whose view this frame set went without (a live camera that
+    /// stopped or fell behind); absent, and 0, when every camera contributed.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub missing_views: u32,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 impl TrackState {
@@ -83,7 +91,13 @@ impl TrajectoryRecord {
                 ((*label).to_owned(), object)
             })
             .collect();
-        Self { frame: sample.frame, t: sample.timestamp_s, objects, dropped_frames: sample.dropped_frames }
+        Self {
+            frame: sample.frame,
+            t: sample.timestamp_s,
+            objects,
+            dropped_frames: sample.dropped_frames,
+            missing_views: sample.missing_views,
+        }
     }
 }
 
@@ -98,6 +112,8 @@ pub fn trajectory_sample(set: &ClusterSet, dropped_frames: u64, published_unix_n
         capture_unix_ns: set.capture_unix_ns,
         published_unix_ns,
         dropped_frames,
+        missing_views: set.missing_views,
+        reserved: 0,
         objects: set.objects.map(|c| TrajectoryObject {
             position: c.position,
             velocity: c.velocity,
@@ -196,8 +212,16 @@ mod tests {
             ObjectSample { pos: [0.2, 1.0, 1.8], vel: [0.1, 0.0, 0.0], confidence: 0.5, state: TrackState::Predicted },
         );
         let mut sink = JsonLinesSink::new(Vec::new());
-        sink.write(&TrajectoryRecord { frame: 0, t: 0.0, objects: objects.clone(), dropped_frames: 0 }).expect("write");
-        sink.write(&TrajectoryRecord { frame: 1, t: 1.0 / 30.0, objects, dropped_frames: 0 }).expect("write");
+        sink.write(&TrajectoryRecord {
+            frame: 0,
+            t: 0.0,
+            objects: objects.clone(),
+            dropped_frames: 0,
+            missing_views: 0,
+        })
+        .expect("write");
+        sink.write(&TrajectoryRecord { frame: 1, t: 1.0 / 30.0, objects, dropped_frames: 0, missing_views: 0 })
+            .expect("write");
         let text = String::from_utf8(sink.into_inner()).expect("utf8");
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines.len(), 2);
