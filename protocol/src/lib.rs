@@ -15,6 +15,7 @@
 
 pub mod ipc;
 pub mod messages;
+pub mod records;
 pub mod rig;
 pub mod wire;
 

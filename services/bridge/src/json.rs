@@ -7,44 +7,9 @@
 
 use std::collections::BTreeMap;
 
-use handflow_protocol::messages::{track_state, ClusterSet, TrajectorySample, OBJECT_LABELS};
+use handflow_protocol::messages::{ClusterSet, TrajectorySample, OBJECT_LABELS};
+pub use handflow_protocol::records::{ObjectSample, TrackState};
 use serde::{Deserialize, Serialize};
-
-/// Tracking state, as the trajectory file writes it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum TrackState {
-    /// Measured this frame.
-    Tracked,
-    /// Extrapolated by the motion model.
-    Predicted,
-    /// No usable estimate.
-    Lost,
-}
-
-impl TrackState {
-    /// The state of a wire [`track_state`] constant (unknown values are `Lost`).
-    pub fn from_wire(state: u32) -> Self {
-        match state {
-            track_state::TRACKED => TrackState::Tracked,
-            track_state::PREDICTED => TrackState::Predicted,
-            _ => TrackState::Lost,
-        }
-    }
-}
-
-/// One object's estimate.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ObjectJson {
-    /// World position, metres.
-    pub pos: [f64; 3],
-    /// World velocity, metres per second.
-    pub vel: [f64; 3],
-    /// Confidence in [0, 1].
-    pub confidence: f64,
-    /// Tracking state.
-    pub state: TrackState,
-}
 
 /// A trajectory sample as JSON.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -62,7 +27,7 @@ pub struct TrajectoryJson {
     /// Stream time, seconds.
     pub t: f64,
     /// Objects by label (`head`, `left_hand`, `right_hand`).
-    pub objects: BTreeMap<String, ObjectJson>,
+    pub objects: BTreeMap<String, ObjectSample>,
     /// Frame sets lost upstream since the stream began.
     pub dropped_frames: u64,
     /// Cameras (bit k: camera k) whose view this frame set went without.
@@ -79,19 +44,7 @@ impl TrajectoryJson {
             published_unix_ns: s.published_unix_ns,
             frame: s.frame,
             t: s.timestamp_s,
-            objects: OBJECT_LABELS
-                .iter()
-                .zip(&s.objects)
-                .map(|(label, o)| {
-                    let object = ObjectJson {
-                        pos: o.position,
-                        vel: o.velocity,
-                        confidence: o.confidence,
-                        state: TrackState::from_wire(o.state),
-                    };
-                    ((*label).to_owned(), object)
-                })
-                .collect(),
+            objects: handflow_protocol::records::objects_by_label(&s.objects),
             dropped_frames: s.dropped_frames,
             missing_views: s.missing_views,
         }
@@ -161,7 +114,7 @@ impl ClusterSetJson {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use handflow_protocol::messages::PROTOCOL_VERSION;
+    use handflow_protocol::messages::{track_state, PROTOCOL_VERSION};
     use handflow_publish::TrajectoryRecord;
 
     #[test]

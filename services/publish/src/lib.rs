@@ -11,35 +11,10 @@
 use std::collections::BTreeMap;
 use std::io::Write;
 
-use handflow_protocol::messages::{
-    track_state, ClusterSet, TrajectoryObject, TrajectorySample, OBJECT_LABELS, PROTOCOL_VERSION,
-};
+use handflow_protocol::messages::{ClusterSet, TrajectoryObject, TrajectorySample, PROTOCOL_VERSION};
 use serde::{Deserialize, Serialize};
 
-/// Tracking state of one object.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum TrackState {
-    /// Measured this frame.
-    Tracked,
-    /// Extrapolated by the motion model.
-    Predicted,
-    /// No usable estimate.
-    Lost,
-}
-
-/// One object's estimate at one frame.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ObjectSample {
-    /// World position, metres.
-    pub pos: [f64; 3],
-    /// World velocity, metres per second.
-    pub vel: [f64; 3],
-    /// Confidence in [0, 1].
-    pub confidence: f64,
-    /// Tracking state.
-    pub state: TrackState,
-}
+pub use handflow_protocol::records::{ObjectSample, TrackState};
 
 /// Every object's estimate at one frame: one line of the trajectory file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -64,33 +39,10 @@ fn is_zero(v: &u32) -> bool {
     *v == 0
 }
 
-impl TrackState {
-    /// The state of a wire [`track_state`] constant (unknown values are `Lost`).
-    pub fn from_wire(state: u32) -> Self {
-        match state {
-            track_state::TRACKED => TrackState::Tracked,
-            track_state::PREDICTED => TrackState::Predicted,
-            _ => TrackState::Lost,
-        }
-    }
-}
-
 impl TrajectoryRecord {
     /// The record of a trajectory sample.
     pub fn from_sample(sample: &TrajectorySample) -> Self {
-        let objects = OBJECT_LABELS
-            .iter()
-            .zip(&sample.objects)
-            .map(|(label, o)| {
-                let object = ObjectSample {
-                    pos: o.position,
-                    vel: o.velocity,
-                    confidence: o.confidence,
-                    state: TrackState::from_wire(o.state),
-                };
-                ((*label).to_owned(), object)
-            })
-            .collect();
+        let objects = handflow_protocol::records::objects_by_label(&sample.objects);
         Self {
             frame: sample.frame,
             t: sample.timestamp_s,
