@@ -61,18 +61,23 @@ fn encode_cameras(rec: &Path, fps: u32) -> Vec<(String, PathBuf)> {
 
 /// [`encode_cameras`], camera `k`'s video stopping after `limits[k]` frames where given.
 fn encode_cameras_up_to(rec: &Path, fps: u32, limits: &[Option<u32>]) -> Vec<(String, PathBuf)> {
+    let options: Vec<Vec<String>> =
+        limits.iter().map(|limit| limit.map_or(Vec::new(), |n| vec!["-frames:v".to_string(), n.to_string()])).collect();
+    encode_cameras_with(rec, fps, &options)
+}
+
+/// [`encode_cameras`], with `options[k]` added to camera `k`'s ffmpeg output options.
+fn encode_cameras_with(rec: &Path, fps: u32, options: &[Vec<String>]) -> Vec<(String, PathBuf)> {
     let rig = Recording::open(rec).unwrap().rig().clone();
     rig.cameras
         .iter()
         .enumerate()
         .map(|(k, cam)| {
             let video = rec.join(format!("{}.mp4", cam.name));
-            let limit =
-                limits.get(k).copied().flatten().map_or(Vec::new(), |n| vec!["-frames:v".to_string(), n.to_string()]);
             let status = Command::new("ffmpeg")
                 .args(["-loglevel", "error", "-y", "-framerate", &fps.to_string(), "-i"])
                 .arg(rec.join(&cam.name).join("%06d.png"))
-                .args(limit)
+                .args(options.get(k).cloned().unwrap_or_default())
                 .args(["-c:v", "libx264", "-crf", "12", "-pix_fmt", "yuv420p"])
                 .arg(&video)
                 .status()
@@ -81,6 +86,17 @@ fn encode_cameras_up_to(rec: &Path, fps: u32, limits: &[Option<u32>]) -> Vec<(St
             (cam.name.clone(), video)
         })
         .collect()
+}
+
+/// The last per-camera report of `camera` in an ingest log: (delivered, in frame sets,
+/// dropped).
+fn last_camera_report(log: &str, camera: &str) -> Option<(u64, u64, u64)> {
+    let line = log.lines().rev().find(|l| l.contains(&format!("camera `{camera}`: ")) && l.contains(" delivered"))?;
+    let number_before = |word: &str| -> Option<u64> {
+        let head = &line[..line.find(word)?];
+        head.split_whitespace().last()?.trim_matches(',').parse().ok()
+    };
+    Some((number_before(" delivered")?, number_before(" in frame sets")?, number_before(" dropped")?))
 }
 
 /// Writes `dir/live.toml`: `mode`, `cameras` (name and source) at `fps`, placed by `rec`'s
@@ -306,4 +322,70 @@ fn a_stream_of_cameras_goes_on_without_one_that_stops_and_keeps_tracking() {
     // camera (alone) after it.
     assert!(mapped.iter().filter(|r| r.frame < 15).all(|r| r.missing_views == 0), "{records:?}");
     assert!(after.iter().all(|r| r.missing_views == 1 << stopping), "{after:?}");
+}
+
+#[test]
+fn a_camera_whose_timestamps_jitter_and_one_that_starts_late_are_grouped_by_capture_time_and_tracked() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let _one = ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let (frames, fps) = (60u32, 10u32);
+    // At the preset's own 640x480: at 320x240 the first second on two cameras loses the
+    // left hand and the third camera's arrival does not bring it back (a start-up matter
+    // of the engine, not of the grouping tested here).
+    let rec = render_preset(dir.path(), "signer-3cam", frames, None);
+    let rig = Recording::open(&rec).unwrap().rig().clone();
+    let reference = rig.most_frontal_camera();
+    let sides: Vec<usize> = (0..rig.cameras.len()).filter(|&k| k != reference).collect();
+    let (jittering, late) = (sides[0], sides[1]);
+    let mut options = vec![Vec::new(); rig.cameras.len()];
+    // Capture times off their instants by up to a third of a frame, as a USB camera's are;
+    // the encoder keeps them at 1/90000 s.
+    options[jittering] = ["-vf", "settb=1/90000,setpts=(N+sin(N*2.3)/3)/(10*TB)", "-enc_time_base", "1/90000"]
+        .map(String::from)
+        .to_vec();
+    options[jittering].extend(["-fps_mode", "passthrough", "-video_track_timescale", "90000"].map(String::from));
+    // The first frame a second into the stream (the trim keeps the frames' times): a
+    // camera that starts late.
+    let late_frames = 10;
+    options[late] = vec!["-vf".to_string(), format!("trim=start_frame={late_frames}")];
+    let videos = encode_cameras_with(&rec, fps, &options);
+    let (file, out) = write_pipeline(dir.path(), "replay", &rec, "live-jitter", &video_sources(&videos), fps);
+    let (ok, log) = run_pipeline(&file, Duration::from_secs(240));
+    assert!(ok, "the run failed:\n{log}");
+
+    // Every frame of the jittering camera found its set.
+    let jitter_name = &rig.cameras[jittering].name;
+    let (delivered, used, dropped) = last_camera_report(&log, jitter_name).expect("a report per camera");
+    assert_eq!(delivered, u64::from(frames), "{log}");
+    assert!(used >= delivered - 1 && dropped <= 1, "`{jitter_name}`: {used} of {delivered} in sets:\n{log}");
+    let late_name = &rig.cameras[late].name;
+    let (late_delivered, late_used, _) = last_camera_report(&log, late_name).expect("a report per camera");
+    assert_eq!(late_delivered, u64::from(frames - late_frames), "{log}");
+    assert!(late_used >= late_delivered - 1, "`{late_name}`: {late_used} of {late_delivered} in sets:\n{log}");
+
+    let records = read_tracks(&out).unwrap();
+    let mut mapped = records.clone();
+    for r in &mut mapped {
+        // A set's time is the middle of its frames: within a sixth of a frame of an instant.
+        let position = r.t * f64::from(fps);
+        assert!((position - position.round()).abs() < 0.2, "set at {} s is between frames", r.t);
+        r.frame = position.round() as u64;
+    }
+    let numbers: Vec<u64> = mapped.iter().map(|r| r.frame).collect();
+    assert!(numbers.windows(2).all(|p| p[0] < p[1]), "frames in order, once each: {numbers:?}");
+    // Before the late camera's first frame, sets went without it (or were not made); from
+    // its first frame on, every set has all three cameras and none is skipped (replay).
+    let start = u64::from(late_frames);
+    assert!(mapped.iter().filter(|r| r.frame < start).all(|r| r.missing_views == 1 << late), "{records:?}");
+    let joined: Vec<_> = mapped.iter().filter(|r| r.frame >= start).cloned().collect();
+    assert!(joined.len() as u64 >= u64::from(frames) - start - 3, "{} samples:\n{log}", joined.len());
+    assert!(joined.iter().all(|r| r.missing_views == 0), "{joined:?}");
+    // Tracked with all three once the third camera is in (start-up is scored elsewhere).
+    let steady: Vec<_> = mapped.iter().filter(|r| r.frame >= start + u64::from(fps)).cloned().collect();
+    let scores = evaluate_tracks(&Recording::open(&rec).unwrap(), &steady).unwrap();
+    assert!(scores.head.agreement >= 0.9, "{scores:?}");
+    assert!(scores.left_hand.agreement >= 0.8 && scores.right_hand.agreement >= 0.8, "{scores:?}");
 }

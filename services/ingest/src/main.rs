@@ -7,8 +7,9 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use handflow_ingest::live::{
-    camera::clock_now_ns, sync::MAX_WAITING_FRAMES, CameraSource, FrameSetSync, LiveCamera, LiveCameraSpec,
-    RecordingWriter,
+    camera::{clock_now_ns, init_clock},
+    sync::MAX_WAITING_FRAMES,
+    CameraSource, FrameSetSync, LiveCamera, LiveCameraSpec, RecordingWriter, StartOptions,
 };
 use handflow_ingest::synthetic::{Renderer, SceneSpec};
 use handflow_ingest::{OpenOptions, Recording};
@@ -331,6 +332,9 @@ fn end_stream(
 
 /// Frame rate assumed for live cameras whose rate the pipeline file does not give.
 const DEFAULT_LIVE_FPS: f64 = 30.0;
+/// Time given to build every camera's pipeline before videos played as cameras start
+/// together.
+const RIG_START_MARGIN: Duration = Duration::from_millis(300);
 /// How long the cameras get to deliver their first frames.
 const FIRST_FRAME_TIMEOUT: Duration = Duration::from_secs(15);
 /// How often the cameras' rates, drops and ages are logged.
@@ -361,6 +365,10 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     let (width, height) = (rig.cameras[0].width, rig.cameras[0].height);
     let mut cameras = Vec::with_capacity(rig.cameras.len());
     let mut fps = None;
+    // Videos played as cameras start together once all are built (a camera that takes
+    // longer delivers its first frames late, still stamped with their own instants).
+    init_clock().map_err(anyhow::Error::msg).context("starting GStreamer for the cameras")?;
+    let rig_start_ns = clock_now_ns() + RIG_START_MARGIN.as_nanos() as u64;
     for cam in &rig.cameras {
         let spec = specs.iter().find(|s| s.name == cam.name).with_context(|| {
             format!("camera `{}` of the calibration has no `[[cameras]]` source in the pipeline", cam.name)
@@ -384,8 +392,8 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
             .with_context(|| format!("camera `{}`", cam.name))?;
         fps = fps.or(spec.fps);
         // Replay loses nothing after the cameras: a camera's frames wait for the pipeline.
-        let lossless = args.mode == Mode::Replay;
-        cameras.push(LiveCamera::start_with(&cam.name, &source, cam.width, cam.height, spec.size, spec.fps, lossless)?);
+        let options = StartOptions { lossless: args.mode == Mode::Replay, rig_start_ns: Some(rig_start_ns) };
+        cameras.push(LiveCamera::start_with(&cam.name, &source, cam.width, cam.height, spec.size, spec.fps, options)?);
         tracing::info!("camera `{}`: started from `{}`", cam.name, spec.source);
     }
     let fps = fps.unwrap_or(DEFAULT_LIVE_FPS);

@@ -116,7 +116,7 @@ impl CameraSource {
 
     /// Whether frames are paced by the pipeline's clock (a file or a source that is not
     /// live would otherwise deliver as fast as it decodes).
-    fn paced_by_clock(&self) -> bool {
+    pub fn paced_by_clock(&self) -> bool {
         matches!(self, CameraSource::File { .. } | CameraSource::Launch { .. })
     }
 }
@@ -159,6 +159,19 @@ struct CameraState {
     failure: Option<String>,
 }
 
+/// How a live camera is started.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StartOptions {
+    /// A consumer that falls behind holds the source back instead of losing frames (a
+    /// replay: a video played as a camera then pauses; a device still drops in its driver).
+    pub lossless: bool,
+    /// Clock time (ns, [`clock_now_ns`]) at which a source paced by the clock (a video, a
+    /// GStreamer description) plays its first frame: the same for every camera of a rig,
+    /// so videos recorded together play together. Devices and network cameras stamp their
+    /// frames as they capture them and ignore it.
+    pub rig_start_ns: Option<u64>,
+}
+
 /// A running live camera.
 pub struct LiveCamera {
     name: String,
@@ -173,6 +186,11 @@ impl std::fmt::Debug for LiveCamera {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("LiveCamera").field("name", &self.name).finish()
     }
+}
+
+/// Readies the clock of [`clock_now_ns`] (GStreamer's), before any camera is started.
+pub fn init_clock() -> Result<(), String> {
+    crate::recording::video::init_gstreamer()
 }
 
 /// Nanoseconds on the clock every live camera stamps its frames with (the system's monotonic
@@ -193,12 +211,10 @@ impl LiveCamera {
         size: Option<[u32; 2]>,
         fps: Option<f64>,
     ) -> Result<LiveCamera, LiveCameraError> {
-        Self::start_with(name, source, width, height, size, fps, false)
+        Self::start_with(name, source, width, height, size, fps, StartOptions::default())
     }
 
-    /// [`LiveCamera::start`]; with `lossless`, a consumer that falls behind holds the source
-    /// back instead of losing frames (a replay: a video played as a camera then pauses; a
-    /// device still drops in its driver).
+    /// [`LiveCamera::start`] with [`StartOptions`].
     pub fn start_with(
         name: &str,
         source: &CameraSource,
@@ -206,8 +222,9 @@ impl LiveCamera {
         height: u32,
         size: Option<[u32; 2]>,
         fps: Option<f64>,
-        lossless: bool,
+        options: StartOptions,
     ) -> Result<LiveCamera, LiveCameraError> {
+        let StartOptions { lossless, rig_start_ns } = options;
         let open_error = |problem: String| LiveCameraError::Open { camera: name.to_string(), problem };
         crate::recording::video::init_gstreamer().map_err(open_error)?;
         let description = source.launch_description(size.or(Some([width, height])), fps);
@@ -225,6 +242,13 @@ impl LiveCamera {
         sink.set_drop(!lossless);
         // One clock for every camera: capture times compare across the rig.
         pipeline.use_clock(Some(&gst::SystemClock::obtain()));
+        if let Some(start) = rig_start_ns.filter(|_| source.paced_by_clock()) {
+            // Every paced source's first frame at the same instant, as a rig's recordings
+            // were captured; left to itself each pipeline starts when it has prerolled, and
+            // the cameras' phases would be whatever their start-up took.
+            pipeline.set_start_time(gst::ClockTime::NONE);
+            pipeline.set_base_time(gst::ClockTime::from_nseconds(start));
+        }
         if pipeline.set_state(gst::State::Playing).is_err() {
             let problem = bus_error(&pipeline).unwrap_or_else(|| "the source would not start".into());
             let _ = pipeline.set_state(gst::State::Null);
@@ -436,6 +460,27 @@ mod tests {
         let failure = failure.expect("refused");
         assert!(failure.contains("64x48") && failure.contains("640x480"), "{failure}");
         assert!(camera.try_frame().is_none());
+    }
+
+    #[test]
+    fn sources_paced_by_the_clock_started_apart_play_their_first_frames_at_the_rigs_start() {
+        // Not live: the pattern's frames are timed by the pipeline's clock, as a video's are.
+        let paced = CameraSource::Launch {
+            description: "videotestsrc pattern=blue num-buffers=3 ! video/x-raw,width=32,height=24,framerate=10/1"
+                .into(),
+        };
+        init_clock().expect("GStreamer");
+        let start = clock_now_ns() + 400_000_000;
+        let options = StartOptions { lossless: true, rig_start_ns: Some(start) };
+        let first = LiveCamera::start_with("cam0", &paced, 32, 24, None, None, options).expect("starts");
+        std::thread::sleep(Duration::from_millis(150));
+        let second = LiveCamera::start_with("cam1", &paced, 32, 24, None, None, options).expect("starts");
+        let times = |camera: &LiveCamera| -> Vec<u64> {
+            (0..3).filter_map(|_| camera.frame_timeout(Duration::from_secs(5))).map(|f| f.capture_ns).collect()
+        };
+        let (a, b) = (times(&first), times(&second));
+        assert_eq!(a, b, "the same instants, 150 ms of start-up apart");
+        assert_eq!(a, vec![start, start + 100_000_000, start + 200_000_000]);
     }
 
     #[test]

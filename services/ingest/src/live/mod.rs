@@ -8,7 +8,7 @@ pub mod writer;
 
 use serde::{Deserialize, Serialize};
 
-pub use camera::{CameraSource, LiveCamera, LiveCameraError};
+pub use camera::{CameraSource, LiveCamera, LiveCameraError, StartOptions};
 pub use sync::{CameraSyncStats, FrameSetSync, TimedFrame};
 pub use writer::{RecordingWriter, WriteError};
 
