@@ -63,6 +63,8 @@ enum Command {
     /// Write a recording (videos or images) in the image-folder layout: rig.toml, frames.csv,
     /// one PNG folder per camera.
     Import(ImportArgs),
+    /// Write a trajectory file as TRC (OpenSim, Pose2Sim), C3D or CSV.
+    Export(ExportArgs),
 }
 
 #[derive(Args, Debug)]
@@ -127,11 +129,32 @@ struct TrackArgs {
     /// Output file (default: standard output).
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Write CSV (frame, t, then per object x y z vx vy vz confidence state) instead of JSON Lines.
-    #[arg(long)]
+    /// File format (default: the extension of `--out`, else JSON Lines): `csv` (frame, t,
+    /// then per object x y z vx vy vz confidence state), `trc` or `c3d` (markers Head, LHand,
+    /// RHand; written once the recording is tracked).
+    #[arg(long, value_enum)]
+    format: Option<crate::commands::export::Format>,
+    /// Same as `--format csv`.
+    #[arg(long, hide = true)]
     csv: bool,
     #[command(flatten)]
     tracker: TrackerArgs,
+}
+
+#[derive(Args, Debug)]
+struct ExportArgs {
+    /// Trajectory file (JSON Lines, as `track` and `run` write it).
+    #[arg(long)]
+    tracks: PathBuf,
+    /// File format (default: the extension of `--out`, else JSON Lines).
+    #[arg(long, value_enum)]
+    format: Option<crate::commands::export::Format>,
+    /// Output file (default: standard output; C3D needs a file).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Frame rate for TRC and C3D (default: what the records' frame numbers and times imply).
+    #[arg(long)]
+    rate: Option<f64>,
 }
 
 /// What the tracker runs on and how: shared by `track` and `inspect`.
@@ -608,6 +631,13 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::FlowDemo) => demo(),
         Some(Command::Rig(command)) => crate::commands::rig::run(&command),
         Some(Command::Import(args)) => import(&args),
+        Some(Command::Export(args)) => {
+            let count = crate::commands::export::export(&args.tracks, args.format, args.out.as_ref(), args.rate)?;
+            if let Some(out) = &args.out {
+                eprintln!("wrote {count} records of `{}` into `{}`", args.tracks.display(), out.display());
+            }
+            Ok(())
+        }
         Some(Command::Run(args)) => run_streaming(&args),
         Some(Command::Record(args)) => record_live(&args),
         Some(Command::Tap(args)) => match &args.zenoh {
@@ -1151,47 +1181,37 @@ fn progress(done: usize, total: usize) {
 }
 
 fn track(args: &TrackArgs) -> Result<()> {
+    use crate::commands::export::{choose_format, write_records, Format};
+    use crate::export::csv::{csv_header, csv_line};
     use std::io::Write as _;
     let options = args.tracker.options();
-    // Written as it goes, each record flushed: a failure late in a long recording keeps
-    // every earlier frame.
+    let format = if args.csv { Format::Csv } else { choose_format(args.format, args.out.as_deref()) };
+    if format == Format::C3d && args.out.is_none() {
+        anyhow::bail!("C3D is binary: give the file to write with --out");
+    }
+    // JSON Lines and CSV are written as they go, each record flushed: a failure late in a
+    // long recording keeps every earlier frame. TRC and C3D count the frames in their
+    // header, so they are written at the end.
     let to_file = args.out.is_some();
-    let mut out: Box<dyn std::io::Write> = match &args.out {
-        Some(path) => Box::new(std::io::BufWriter::new(
+    let mut kept = Vec::new();
+    let mut out: Box<dyn std::io::Write> = match (&args.out, format.needs_all_records()) {
+        (_, true) => Box::new(std::io::sink()),
+        (Some(path), false) => Box::new(std::io::BufWriter::new(
             std::fs::File::create(path).with_context(|| format!("creating `{}`", path.display()))?,
         )),
-        None => Box::new(std::io::stdout().lock()),
+        (None, false) => Box::new(std::io::stdout().lock()),
     };
-    if args.csv {
-        let mut header = String::from("frame,t");
-        for name in handflow_cluster::tracks::OBJECTS {
-            for field in ["x", "y", "z", "vx", "vy", "vz", "confidence", "state"] {
-                header.push_str(&format!(",{name}_{field}"));
-            }
-        }
-        writeln!(out, "{header}")?;
+    if format == Format::Csv {
+        writeln!(out, "{}", csv_header())?;
     }
     let summary = track_recording(&args.tracker.recording, &options, |record, done, total| {
-        if args.csv {
-            let mut line = format!("{},{}", record.frame, record.t);
-            for name in handflow_cluster::tracks::OBJECTS {
-                let o = record.objects.get(name).context("record without an object")?;
-                line.push_str(&format!(
-                    ",{},{},{},{},{},{},{},{}",
-                    o.pos[0],
-                    o.pos[1],
-                    o.pos[2],
-                    o.vel[0],
-                    o.vel[1],
-                    o.vel[2],
-                    o.confidence,
-                    serde_json::to_value(o.state)?.as_str().unwrap_or("lost")
-                ));
+        match format {
+            Format::Csv => writeln!(out, "{}", csv_line(record)?)?,
+            Format::Jsonl => {
+                serde_json::to_writer(&mut out, record)?;
+                writeln!(out)?;
             }
-            writeln!(out, "{line}")?;
-        } else {
-            serde_json::to_writer(&mut out, record)?;
-            writeln!(out)?;
+            Format::Trc | Format::C3d => kept.push(record.clone()),
         }
         if to_file {
             out.flush()?;
@@ -1199,6 +1219,9 @@ fn track(args: &TrackArgs) -> Result<()> {
         progress(done, total);
         Ok(())
     })?;
+    if format.needs_all_records() {
+        write_records(&kept, format, args.out.as_deref(), None)?;
+    }
     out.flush()?;
     tracing::info!(
         frames = summary.frames,

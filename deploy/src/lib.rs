@@ -7,6 +7,7 @@
 //!   `overlay`, ...), one module per command;
 //! - [`eval`]: scoring against ground truth or another tracker (Middlebury, skin masks,
 //!   trajectories);
+//! - [`export`]: trajectories as the files other tools read (TRC, C3D, CSV);
 //! - [`bench`]: speed measurements that report ratios against a baseline of the same run;
 //! - [`recording_engine`] and [`engine_overrides`]: the engine's configuration on a recording,
 //!   shared by the commands, the evaluations and the benchmarks.
@@ -18,4 +19,5 @@ pub mod cli;
 pub mod commands;
 pub mod engine_overrides;
 pub mod eval;
+pub mod export;
 pub mod recording_engine;

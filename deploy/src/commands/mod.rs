@@ -1,5 +1,6 @@
 //! The commands a user runs on footage and pipelines, one module each.
 
+pub mod export;
 pub mod import;
 pub mod inspect;
 pub mod launcher;
