@@ -5,6 +5,7 @@
 # rendered preset) is encoded to H.264 first (ffmpeg). Prints the run's end-of-stream lines
 # (samples, frames lost, glass-to-trajectory latency) and the scores.
 # Usage: scripts/live_from_videos.sh [RECORDING_DIR] [FPS]
+# CODEC=mjpeg encodes the PNG folders as Motion JPEG (what USB webcams send) instead of H.264.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 rec=$(realpath "${1:-../shared/data/real/caliscope-hands}")
@@ -28,8 +29,14 @@ done
 if ! grep -q cameras "$out/live.toml"; then
     for dir in "$rec"/cam*/; do
         name=$(basename "$dir")
-        ffmpeg -loglevel error -y -framerate "$fps" -i "$dir/%06d.png" -c:v libx264 -crf 12 -pix_fmt yuv420p "$out/$name.mp4"
-        printf '\n[[cameras]]\nname = "%s"\nsource = "file://%s/%s.mp4"\nfps = %s\n' "$name" "$out" "$name" "$fps" >>"$out/live.toml"
+        if [ "${CODEC:-h264}" = mjpeg ]; then
+            video=$out/$name.mkv
+            ffmpeg -loglevel error -y -framerate "$fps" -i "$dir/%06d.png" -c:v mjpeg -q:v 3 -pix_fmt yuvj420p "$video"
+        else
+            video=$out/$name.mp4
+            ffmpeg -loglevel error -y -framerate "$fps" -i "$dir/%06d.png" -c:v libx264 -crf 12 -pix_fmt yuv420p "$video"
+        fi
+        printf '\n[[cameras]]\nname = "%s"\nsource = "file://%s"\nfps = %s\n' "$name" "$video" "$fps" >>"$out/live.toml"
     done
 fi
 "$bin" run "$out/live.toml" 2>"$out/run.log" >/dev/null

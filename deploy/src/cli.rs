@@ -106,9 +106,14 @@ struct OverlayArgs {
     /// Trajectory file (JSON Lines, as `handflow track` writes).
     #[arg(long)]
     tracks: PathBuf,
-    /// Output folder: one image folder per camera.
+    /// Output folder: one image folder per camera (with `--video`, one video per camera and
+    /// a montage of them all).
     #[arg(long)]
     out: PathBuf,
+    /// Write WebM videos (VP8) instead of PNGs: `<camera>.webm` per camera and
+    /// `montage.webm`, every camera in a grid, at the recording's frame rate.
+    #[arg(long)]
+    video: bool,
 }
 
 #[derive(Args, Debug)]
@@ -1314,6 +1319,16 @@ fn overlay(args: &OverlayArgs) -> Result<()> {
     let options = handflow_ingest::OpenOptions { calibration: args.calibration.clone(), ..Default::default() };
     let rec = handflow_ingest::Recording::open_with(&args.recording, &options)?;
     let records = read_tracks(&args.tracks)?;
+    if args.video {
+        let videos = crate::commands::overlay::write_overlay_videos(&rec, &records, &args.out)?;
+        out!(
+            "wrote {} frames into {} camera videos and `{}`",
+            videos.frames,
+            videos.cameras.len(),
+            videos.montage.display()
+        );
+        return Ok(());
+    }
     let written = crate::commands::overlay::write_overlays(&rec, &records, &args.out)?;
     out!("wrote {written} images into `{}` (one folder per camera)", args.out.display());
     Ok(())

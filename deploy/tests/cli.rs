@@ -486,6 +486,27 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
     let r = handflow(&["overlay", "--recording", arg(&rec), "--tracks", arg(&tracks), "--out", arg(&overlays)]);
     assert!(r.status.success(), "{}", describe(&r));
     assert!(overlays.join("cam2/000007.png").is_file());
+    let videos = tmp.path().join("overlay-videos");
+    let r =
+        handflow(&["overlay", "--recording", arg(&rec), "--tracks", arg(&tracks), "--out", arg(&videos), "--video"]);
+    assert!(r.status.success(), "{}", describe(&r));
+    for (name, size) in [("cam0", "640x480"), ("cam2", "640x480"), ("montage", "1280x960")] {
+        let video = videos.join(format!("{name}.webm"));
+        // Read back by ffprobe, another media library than the writer's.
+        let Ok(probe) = std::process::Command::new("ffprobe")
+            .args(["-v", "error", "-count_frames", "-select_streams", "v:0"])
+            .args(["-show_entries", "stream=codec_name,width,height,nb_read_frames", "-of", "csv=p=0"])
+            .arg(&video)
+            .output()
+        else {
+            assert!(std::env::var_os("HANDFLOW_REQUIRE_FFMPEG").is_none(), "ffprobe is not installed");
+            eprintln!("skipped reading the overlay videos back: ffprobe is not installed");
+            break;
+        };
+        let fields = String::from_utf8_lossy(&probe.stdout).trim().to_string();
+        let (w, h) = size.split_once('x').unwrap();
+        assert_eq!(fields, format!("vp8,{w},{h},7"), "{}: seven frames of {size}", video.display());
+    }
 
     let csv = tmp.path().join("tracks.csv");
     let r = handflow(&["track", "--recording", arg(&rec), "--out", arg(&csv), "--csv", "--frames", "4"]);

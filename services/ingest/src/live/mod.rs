@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 pub use camera::{CameraSource, LiveCamera, LiveCameraError, StartOptions};
 pub use sync::{CameraSyncStats, FrameSetSync, TimedFrame};
-pub use writer::{RecordingWriter, WriteError};
+pub use writer::{RecordingWriter, VideoFileWriter, WriteError, WEBM_VP8};
 
 /// One camera of a live pipeline, as the pipeline file names it:
 ///

@@ -27,20 +27,129 @@ pub enum WriteError {
     },
 }
 
-/// One camera's video being written.
-struct VideoWriter {
+/// GStreamer encoder and muxer of a WebM video (VP8) that browsers and players read: what
+/// `handflow overlay --video` writes.
+pub const WEBM_VP8: &str =
+    "vp8enc deadline=1 cpu-used=4 end-usage=cq cq-level=12 target-bitrate=8000000 keyframe-max-dist=60 ! webmmux";
+
+/// One video being written from RGB8 frames at a fixed rate.
+pub struct VideoFileWriter {
     path: PathBuf,
     pipeline: gst::Pipeline,
     source: gst_app::AppSrc,
-    view_len: usize,
+    frame_len: usize,
+    fps: f64,
+    written: u64,
+}
+
+impl std::fmt::Debug for VideoFileWriter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VideoFileWriter").field("path", &self.path).field("written", &self.written).finish()
+    }
+}
+
+impl VideoFileWriter {
+    /// Starts `path`, `width` x `height` RGB8 frames at `fps` through `encoder` (a GStreamer
+    /// description from the encoder to the muxer, e.g. [`WEBM_VP8`]).
+    pub fn create(path: &Path, width: u32, height: u32, fps: f64, encoder: &str) -> Result<Self, WriteError> {
+        crate::recording::video::init_gstreamer().map_err(|e| file_error(path, e))?;
+        let (n, d) = if (fps - fps.round()).abs() < 1e-3 {
+            (fps.round() as i32, 1)
+        } else {
+            ((fps * 1001.0).round() as i32, 1001)
+        };
+        let description = format!(
+            "appsrc name=src format=time caps=video/x-raw,format=RGB,width={width},height={height},framerate={n}/{d} ! \
+             videoconvert ! {encoder} ! filesink location=\"{}\"",
+            path.display()
+        );
+        let pipeline = gst::parse::launch(&description)
+            .map_err(|e| file_error(path, format!("cannot build the encoder ({e}); Debian: apt-get install gstreamer1.0-libav gstreamer1.0-plugins-good gstreamer1.0-plugins-ugly")))?
+            .downcast::<gst::Pipeline>()
+            .map_err(|_| file_error(path, "the encoder is not a pipeline"))?;
+        let source = pipeline
+            .by_name("src")
+            .and_then(|e| e.downcast::<gst_app::AppSrc>().ok())
+            .ok_or_else(|| file_error(path, "the encoder has no source"))?;
+        // Never drop: a video holds every frame it was given.
+        source.set_block(true);
+        source.set_max_bytes(64 << 20);
+        pipeline
+            .set_state(gst::State::Playing)
+            .map_err(|e| file_error(path, format!("the encoder would not start: {e}")))?;
+        let frame_len = width as usize * height as usize * 3;
+        Ok(Self { path: path.to_owned(), pipeline, source, frame_len, fps, written: 0 })
+    }
+
+    /// Appends one RGB8 frame, shown for one frame interval after the previous one.
+    pub fn push(&mut self, rgb: &[u8]) -> Result<(), WriteError> {
+        if rgb.len() != self.frame_len {
+            return Err(file_error(&self.path, format!("a frame of {} bytes, {} expected", rgb.len(), self.frame_len)));
+        }
+        let pts = gst::ClockTime::from_nseconds((self.written as f64 * 1e9 / self.fps) as u64);
+        let duration = gst::ClockTime::from_nseconds((1e9 / self.fps) as u64);
+        let mut buffer = gst::Buffer::from_mut_slice(rgb.to_vec());
+        if let Some(b) = buffer.get_mut() {
+            b.set_pts(pts);
+            b.set_duration(duration);
+        }
+        self.source
+            .push_buffer(buffer)
+            .map_err(|e| file_error(&self.path, format!("encoding frame {}: {e}", self.written)))?;
+        self.written += 1;
+        Ok(())
+    }
+
+    /// The file being written.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Says the video has ended; [`VideoFileWriter::wait`] then waits for its file.
+    fn end(&self) -> Result<(), WriteError> {
+        self.source.end_of_stream().map_err(|e| file_error(&self.path, format!("ending the video: {e}")))?;
+        Ok(())
+    }
+
+    /// Waits until the ended video's file is complete.
+    fn wait(&self) -> Result<(), WriteError> {
+        let bus = self.pipeline.bus().ok_or_else(|| file_error(&self.path, "the encoder has no bus"))?;
+        let done = bus.timed_pop_filtered(
+            gst::ClockTime::from_seconds(FINISH_TIMEOUT_S),
+            &[gst::MessageType::Eos, gst::MessageType::Error],
+        );
+        let _ = self.pipeline.set_state(gst::State::Null);
+        match done.as_ref().map(|m| m.view()) {
+            Some(gst::MessageView::Eos(_)) => Ok(()),
+            Some(gst::MessageView::Error(e)) => Err(file_error(&self.path, e.error())),
+            _ => Err(file_error(&self.path, format!("not finished within {FINISH_TIMEOUT_S} s"))),
+        }
+    }
+
+    /// Ends the video; its file is complete once this returns.
+    pub fn finish(self) -> Result<PathBuf, WriteError> {
+        self.end()?;
+        self.wait()?;
+        Ok(self.path.clone())
+    }
+
+    /// Frames written so far.
+    pub fn written(&self) -> u64 {
+        self.written
+    }
+}
+
+impl Drop for VideoFileWriter {
+    fn drop(&mut self) {
+        let _ = self.pipeline.set_state(gst::State::Null);
+    }
 }
 
 /// A recording being written, one frame set at a time.
 pub struct RecordingWriter {
     dir: PathBuf,
-    videos: Vec<VideoWriter>,
+    videos: Vec<VideoFileWriter>,
     frames_csv: std::io::BufWriter<std::fs::File>,
-    fps: f64,
     written: u64,
 }
 
@@ -71,11 +180,6 @@ impl RecordingWriter {
         let file = std::fs::File::create(&csv_path).map_err(|e| file_error(&csv_path, e))?;
         let mut frames_csv = std::io::BufWriter::new(file);
         writeln!(frames_csv, "frame,timestamp").map_err(|e| file_error(&csv_path, e))?;
-        let (n, d) = if (fps - fps.round()).abs() < 1e-3 {
-            (fps.round() as i32, 1)
-        } else {
-            ((fps * 1001.0).round() as i32, 1001)
-        };
         let mut videos = Vec::with_capacity(rig.cameras.len());
         for cam in &rig.cameras {
             let (extension, encoder) = match quality {
@@ -85,53 +189,23 @@ impl RecordingWriter {
                 }
             };
             let path = dir.join(format!("{}.{extension}", cam.name));
-            let description = format!(
-                "appsrc name=src format=time caps=video/x-raw,format=RGB,width={},height={},framerate={n}/{d} ! \
-                 videoconvert ! {encoder} ! filesink location=\"{}\"",
-                cam.width,
-                cam.height,
-                path.display()
-            );
-            let pipeline = gst::parse::launch(&description)
-                .map_err(|e| file_error(&path, format!("cannot build the encoder ({e}); Debian: apt-get install gstreamer1.0-libav gstreamer1.0-plugins-good gstreamer1.0-plugins-ugly")))?
-                .downcast::<gst::Pipeline>()
-                .map_err(|_| file_error(&path, "the encoder is not a pipeline"))?;
-            let source = pipeline
-                .by_name("src")
-                .and_then(|e| e.downcast::<gst_app::AppSrc>().ok())
-                .ok_or_else(|| file_error(&path, "the encoder has no source"))?;
-            // Never drop: a recording holds every frame set it was given.
-            source.set_block(true);
-            source.set_max_bytes(64 << 20);
-            pipeline
-                .set_state(gst::State::Playing)
-                .map_err(|e| file_error(&path, format!("the encoder would not start: {e}")))?;
-            videos.push(VideoWriter { path, pipeline, source, view_len: cam.width as usize * cam.height as usize * 3 });
+            videos.push(VideoFileWriter::create(&path, cam.width, cam.height, fps, &encoder)?);
         }
-        Ok(RecordingWriter { dir: dir.to_owned(), videos, frames_csv, fps, written: 0 })
+        Ok(RecordingWriter { dir: dir.to_owned(), videos, frames_csv, written: 0 })
     }
 
     /// Appends a frame set: frame number `frame`, capture time `timestamp_s` (seconds,
     /// increasing), every camera's RGB8 view back to back in rig order.
     pub fn write_set(&mut self, frame: u64, timestamp_s: f64, views: &[u8]) -> Result<(), WriteError> {
-        let total: usize = self.videos.iter().map(|v| v.view_len).sum();
+        let total: usize = self.videos.iter().map(|v| v.frame_len).sum();
         if views.len() != total {
             return Err(file_error(&self.dir, format!("a frame set of {} bytes, {total} expected", views.len())));
         }
-        let pts = gst::ClockTime::from_nseconds((self.written as f64 * 1e9 / self.fps) as u64);
-        let duration = gst::ClockTime::from_nseconds((1e9 / self.fps) as u64);
         let mut offset = 0;
-        for video in &self.videos {
-            let mut buffer = gst::Buffer::from_mut_slice(views[offset..offset + video.view_len].to_vec());
-            offset += video.view_len;
-            if let Some(b) = buffer.get_mut() {
-                b.set_pts(pts);
-                b.set_duration(duration);
-            }
-            video
-                .source
-                .push_buffer(buffer)
-                .map_err(|e| file_error(&video.path, format!("encoding frame {frame}: {e}")))?;
+        for video in &mut self.videos {
+            let view = &views[offset..offset + video.frame_len];
+            offset += video.frame_len;
+            video.push(view)?;
         }
         // The shortest text that reads back as the same number: replays see the same times.
         writeln!(self.frames_csv, "{frame},{timestamp_s}").map_err(|e| file_error(&self.dir.join("frames.csv"), e))?;
@@ -147,31 +221,14 @@ impl RecordingWriter {
     /// Ends every video (their files are complete once this returns) and `frames.csv`.
     pub fn finish(mut self) -> Result<PathBuf, WriteError> {
         self.frames_csv.flush().map_err(|e| file_error(&self.dir.join("frames.csv"), e))?;
+        // Every video ended first, so they finish together.
         for video in &self.videos {
-            video.source.end_of_stream().map_err(|e| file_error(&video.path, format!("ending the video: {e}")))?;
+            video.end()?;
         }
         for video in &self.videos {
-            let bus = video.pipeline.bus().ok_or_else(|| file_error(&video.path, "the encoder has no bus"))?;
-            let done = bus.timed_pop_filtered(
-                gst::ClockTime::from_seconds(FINISH_TIMEOUT_S),
-                &[gst::MessageType::Eos, gst::MessageType::Error],
-            );
-            let _ = video.pipeline.set_state(gst::State::Null);
-            match done.as_ref().map(|m| m.view()) {
-                Some(gst::MessageView::Eos(_)) => {}
-                Some(gst::MessageView::Error(e)) => return Err(file_error(&video.path, e.error())),
-                _ => return Err(file_error(&video.path, format!("not finished within {FINISH_TIMEOUT_S} s"))),
-            }
+            video.wait()?;
         }
         Ok(self.dir.clone())
-    }
-}
-
-impl Drop for RecordingWriter {
-    fn drop(&mut self) {
-        for video in &self.videos {
-            let _ = video.pipeline.set_state(gst::State::Null);
-        }
     }
 }
 
