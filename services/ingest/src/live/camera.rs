@@ -386,7 +386,7 @@ fn timed_frame(
     let data = frame.plane_data(0).map_err(|e| format!("cannot read a frame: {e}"))?;
     let mut rgb = vec![0u8; width as usize * height as usize * 3];
     yuv::copy_rgb_rows(data, frame.plane_stride()[0] as usize, width as usize, height as usize, &mut rgb)?;
-    Ok(Some(TimedFrame { capture_ns: (base + running).nseconds(), data: rgb }))
+    Ok(Some(TimedFrame { capture_ns: (base + running).nseconds(), delivered_ns: clock_now_ns(), data: rgb }))
 }
 
 #[cfg(test)]

@@ -7,8 +7,10 @@
 //! its two), so every frame of a set lies within half a frame interval of the set's
 //! instant, the middle of its frames. Frames a camera had before the one it took are passed
 //! over (counted as dropped). A window is decided once every camera has shown a frame past
-//! it (nothing of it can still come), or once it is the stall timeout old: a camera that
-//! has gone quiet then misses the set, which is dropped as incomplete and counted against it.
+//! it (nothing of it can still come), or once the stall timeout has passed since its first
+//! frames arrived (not since they were captured: frames that all come late must still find
+//! each other): a camera that has gone quiet then misses the set, which is dropped as
+//! incomplete and counted against it.
 
 use std::collections::VecDeque;
 
@@ -17,6 +19,9 @@ use std::collections::VecDeque;
 pub struct TimedFrame {
     /// Capture time, nanoseconds on the common clock.
     pub capture_ns: u64,
+    /// When the camera handed it over, on the same clock: later than `capture_ns` by the
+    /// source's latency (decoding, transport), which can be more than the stall timeout.
+    pub delivered_ns: u64,
     /// RGB8 pixels.
     pub data: Vec<u8>,
 }
@@ -138,7 +143,18 @@ impl FrameSetSync {
                 .iter()
                 .zip(&self.gone)
                 .all(|(q, &gone)| gone || q.back().is_some_and(|f| f.capture_ns >= end));
-            if !closed && now_ns.saturating_sub(start) < stall_ns {
+            // A camera is waited for as long after its partners' frames *arrived*: frames
+            // that all come late (a decoder behind the clock, a source's latency) must not
+            // make every window look stalled.
+            let arrived = self
+                .queues
+                .iter()
+                .filter_map(|q| q.front())
+                .filter(|f| f.capture_ns < end)
+                .map(|f| f.delivered_ns.max(f.capture_ns))
+                .min()
+                .unwrap_or(start);
+            if !closed && now_ns.saturating_sub(arrived) < stall_ns {
                 return None;
             }
             // Queues are in time order and start at or after `start`: a front inside the
@@ -198,7 +214,7 @@ mod tests {
     const T: u64 = 33 * MS;
 
     fn frame(ns: u64, camera: u8) -> TimedFrame {
-        TimedFrame { capture_ns: ns, data: vec![camera] }
+        TimedFrame { capture_ns: ns, delivered_ns: ns, data: vec![camera] }
     }
 
     /// A set's instant and its cameras' capture times (`None`: the camera missed it).
@@ -322,6 +338,30 @@ mod tests {
         }
         assert!(sync.stats()[1].dropped >= 27, "{:?}", sync.stats()[1]);
         assert_eq!(sync.stats()[0].dropped, 0);
+    }
+
+    #[test]
+    fn frames_that_all_arrive_late_are_still_grouped_whole_in_a_live_stream() {
+        // Three cameras whose frames arrive half a second after their capture (a decoder
+        // behind the clock), each camera 10 ms after the one before; the stall timeout is
+        // four frames. Timed from capture, every window would look stalled.
+        let late = 500 * MS;
+        let mut sync = FrameSetSync::new(3, T);
+        let mut events: Vec<(u64, usize, u64)> =
+            (0..30u64).flat_map(|n| (0..3).map(move |c| (n * T + late + c as u64 * 10 * MS, c, n * T))).collect();
+        events.sort_unstable();
+        let mut sets = 0;
+        for (now, c, capture) in events {
+            sync.push(c, TimedFrame { capture_ns: capture, delivered_ns: now, data: vec![c as u8] });
+            while let Some((_, frames)) =
+                sync.next_set_or_partial(now, 4 * T, |p| p[0] && p.iter().filter(|&&x| x).count() >= 2)
+            {
+                assert!(frames.iter().all(Option::is_some), "a set without a camera whose frame was on its way");
+                sets += 1;
+            }
+        }
+        assert!(sets >= 29, "{sets} sets of 30");
+        assert!(sync.stats().iter().all(|s| s.dropped == 0 && s.missed_sets == 0), "{:?}", sync.stats());
     }
 
     #[test]
