@@ -19,13 +19,36 @@ const COLOURS: [[u8; 3]; 3] = [[255, 220, 0], [0, 230, 80], [255, 40, 40]];
 /// is reported and skipped. Returns the images written.
 pub fn write_overlays(rec: &Recording, records: &[TrajectoryRecord], out: &Path) -> Result<usize> {
     let cameras = &rec.rig().cameras;
-    let by_frame: std::collections::BTreeMap<u64, usize> =
-        rec.frames().iter().enumerate().map(|(i, f)| (f.frame, i)).collect();
     for cam in cameras {
         let dir = out.join(&cam.name);
         std::fs::create_dir_all(&dir).with_context(|| format!("creating `{}`", dir.display()))?;
     }
     let mut written = 0;
+    for_each_drawn_frame(rec, records, |index, images| {
+        for ((c, cam), img) in cameras.iter().enumerate().zip(images) {
+            let name = match rec.image_path(index, c).and_then(Path::file_name) {
+                Some(name) => Path::new(name).with_extension("png"),
+                None => format!("{:06}.png", rec.frames()[index].frame).into(),
+            };
+            let target = out.join(&cam.name).join(name);
+            img.save(&target).with_context(|| format!("writing `{}`", target.display()))?;
+            written += 1;
+        }
+        Ok(())
+    })?;
+    Ok(written)
+}
+
+/// Calls `each` with the recording index and every camera's image (tracks drawn) of each
+/// record's frame, in order. A frame that cannot be read is reported and skipped.
+fn for_each_drawn_frame(
+    rec: &Recording,
+    records: &[TrajectoryRecord],
+    mut each: impl FnMut(usize, Vec<image::RgbImage>) -> Result<()>,
+) -> Result<()> {
+    let cameras = &rec.rig().cameras;
+    let by_frame: std::collections::BTreeMap<u64, usize> =
+        rec.frames().iter().enumerate().map(|(i, f)| (f.frame, i)).collect();
     let mut buf = vec![0u8; rec.frame_set_len()];
     for (n, record) in records.iter().enumerate() {
         let index = *by_frame
@@ -40,20 +63,16 @@ pub fn write_overlays(rec: &Recording, records: &[TrajectoryRecord], out: &Path)
             Err(error) => return Err(error.into()),
         }
         let tail = &records[n.saturating_sub(TAIL - 1)..=n];
-        for ((c, cam), view) in cameras.iter().enumerate().zip(rec.views(&buf)) {
+        let mut images = Vec::with_capacity(cameras.len());
+        for (cam, view) in cameras.iter().zip(rec.views(&buf)) {
             let mut img = image::RgbImage::from_raw(cam.width, cam.height, view.to_vec())
                 .with_context(|| format!("camera `{}`: frame buffer of the wrong size", cam.name))?;
             draw_tracks(&mut img, cam, tail);
-            let name = match rec.image_path(index, c).and_then(Path::file_name) {
-                Some(name) => Path::new(name).with_extension("png"),
-                None => format!("{:06}.png", record.frame).into(),
-            };
-            let target = out.join(&cam.name).join(name);
-            img.save(&target).with_context(|| format!("writing `{}`", target.display()))?;
-            written += 1;
+            images.push(img);
         }
+        each(index, images)?;
     }
-    Ok(written)
+    Ok(())
 }
 
 /// Longest side of the montage video, pixels: the cameras are scaled down to fit.
@@ -78,8 +97,6 @@ pub fn write_overlay_videos(rec: &Recording, records: &[TrajectoryRecord], out: 
     let cameras = &rec.rig().cameras;
     std::fs::create_dir_all(out).with_context(|| format!("creating `{}`", out.display()))?;
     let fps = rec.frame_rate();
-    let by_frame: std::collections::BTreeMap<u64, usize> =
-        rec.frames().iter().enumerate().map(|(i, f)| (f.frame, i)).collect();
     let mut videos = cameras
         .iter()
         .map(|cam| {
@@ -88,30 +105,13 @@ pub fn write_overlay_videos(rec: &Recording, records: &[TrajectoryRecord], out: 
         .collect::<Result<Vec<_>, _>>()?;
     let layout = MontageLayout::new(cameras.iter().map(|c| (c.width, c.height)).collect());
     let mut montage = VideoFileWriter::create(&out.join("montage.webm"), layout.width, layout.height, fps, WEBM_VP8)?;
-    let mut buf = vec![0u8; rec.frame_set_len()];
-    for (n, record) in records.iter().enumerate() {
-        let index = *by_frame
-            .get(&record.frame)
-            .with_context(|| format!("trajectory frame {} is not in the recording", record.frame))?;
-        match rec.read_frame_into(index as u64, false, &mut buf) {
-            Ok(_) => {}
-            Err(error) if error.is_bad_frame() => {
-                tracing::error!("overlay of frame {} skipped: {error}", record.frame);
-                continue;
-            }
-            Err(error) => return Err(error.into()),
-        }
-        let tail = &records[n.saturating_sub(TAIL - 1)..=n];
-        let mut tiles = Vec::with_capacity(cameras.len());
-        for ((cam, view), video) in cameras.iter().zip(rec.views(&buf)).zip(&mut videos) {
-            let mut img = image::RgbImage::from_raw(cam.width, cam.height, view.to_vec())
-                .with_context(|| format!("camera `{}`: frame buffer of the wrong size", cam.name))?;
-            draw_tracks(&mut img, cam, tail);
+    for_each_drawn_frame(rec, records, |_, images| {
+        for (video, img) in videos.iter_mut().zip(&images) {
             video.push(img.as_raw())?;
-            tiles.push(img);
         }
-        montage.push(layout.compose(&tiles).as_raw())?;
-    }
+        montage.push(layout.compose(&images).as_raw())?;
+        Ok(())
+    })?;
     let frames = montage.written();
     let cameras = videos.into_iter().map(|v| v.finish()).collect::<Result<Vec<_>, _>>()?;
     let montage = montage.finish()?;
