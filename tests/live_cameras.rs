@@ -27,7 +27,7 @@ fn have_ffmpeg() -> bool {
 /// Runs `handflow run --pipeline FILE`, returning whether it succeeded and its log.
 fn run_pipeline(file: &Path, timeout: Duration) -> (bool, String) {
     let mut child: Child = Command::new(binaries_dir().join("handflow"))
-        .arg("run")
+        .args(["run", "--no-viewer"])
         .arg(file)
         .stdin(Stdio::null())
         .stdout(Stdio::null())

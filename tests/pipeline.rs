@@ -61,7 +61,7 @@ impl Log {
 
 fn launcher(args: &[&str]) -> Child {
     Command::new(binaries_dir().join("handflow"))
-        .arg("run")
+        .args(["run", "--no-viewer"])
         .args(args)
         .stdin(Stdio::null())
         .stdout(Stdio::piped())

@@ -278,6 +278,13 @@ struct RunArgs {
     /// the cameras.
     #[arg(long, value_parser = parse_direction)]
     up: Option<[f64; 3]>,
+    /// Serve the live viewer on this address (default 127.0.0.1:8787, loopback only; for
+    /// example 0.0.0.0:8787 to open it from other machines).
+    #[arg(long, conflicts_with = "no_viewer")]
+    viewer: Option<String>,
+    /// Do not serve the live viewer.
+    #[arg(long)]
+    no_viewer: bool,
 }
 
 #[derive(Args, Debug)]
@@ -867,6 +874,13 @@ fn run_streaming(args: &RunArgs) -> Result<()> {
     }
     if args.up.is_some() {
         p.up = args.up;
+    }
+    if let Some(address) = &args.viewer {
+        p.viewer.enabled = true;
+        p.viewer.listen.clone_from(address);
+    }
+    if args.no_viewer {
+        p.viewer.enabled = false;
     }
     let demo = p.recording.is_none() && p.preset.is_none() && p.cameras.is_empty();
     if demo {

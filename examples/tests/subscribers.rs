@@ -51,7 +51,16 @@ fn rust_and_python_recognisers_get_every_sample_and_see_the_hands_cross() {
     });
 
     let run = Command::new(binaries_dir().join("handflow"))
-        .args(["run", "--recording", rec.to_str().unwrap(), "--out", out.to_str().unwrap(), "--services", &prefix])
+        .args([
+            "run",
+            "--no-viewer",
+            "--recording",
+            rec.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--services",
+            &prefix,
+        ])
         .stderr(Stdio::null())
         .output()
         .unwrap();

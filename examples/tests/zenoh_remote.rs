@@ -99,7 +99,7 @@ fn remote_subscribers_receive_every_sample_of_a_replay_in_order() {
     let tap = remote_tap(&endpoint, Some(frames as usize));
 
     let run = Command::new(binaries_dir().join("handflow"))
-        .args(["run", pipeline.to_str().unwrap()])
+        .args(["run", "--no-viewer", pipeline.to_str().unwrap()])
         .stdout(Stdio::null())
         .output()
         .unwrap();
@@ -132,7 +132,7 @@ fn killing_the_bridge_leaves_the_local_outputs_whole_and_the_remote_side_resumes
     let tap = remote_tap(&endpoint, None);
 
     let mut run = Command::new(binaries_dir().join("handflow"))
-        .args(["run", pipeline.to_str().unwrap()])
+        .args(["run", "--no-viewer", pipeline.to_str().unwrap()])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()

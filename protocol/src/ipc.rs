@@ -694,6 +694,47 @@ pub fn wait_for_rig(node: &IpcNode, names: &ServiceNames) -> Result<Option<(RigH
     }
 }
 
+/// Whether each stage of pipeline `names` (ingest, flow, cluster, publish) is up: a live
+/// process holds a publisher on the stage's output service. Node names are shared by every pipeline
+/// on the machine; services carry the pipeline's prefix, so this tells pipelines apart.
+pub fn stage_health(node: &IpcNode, names: &ServiceNames) -> Vec<(&'static str, bool)> {
+    let mut alive = std::collections::HashSet::new();
+    let _ = Node::<Ipc>::list(node.config(), |state| {
+        if let NodeState::Alive(view) = state {
+            alive.insert(*iceoryx2::node::NodeView::id(&view));
+        }
+        CallbackProgression::Continue
+    });
+    let publishing = |service: Option<&iceoryx2::service::dynamic_config::publish_subscribe::DynamicConfig<_>>| {
+        let mut any = false;
+        if let Some(config) = service {
+            config.list_publishers(|details| {
+                any = alive.contains(&details.node_id);
+                if any {
+                    CallbackProgression::Stop
+                } else {
+                    CallbackProgression::Continue
+                }
+            });
+        }
+        any
+    };
+    macro_rules! up {
+        ($suffix:literal, $payload:ty, $header:ty) => {{
+            let service = service_name(&names.full($suffix)).ok().and_then(|name| {
+                node.service_builder(&name).publish_subscribe::<$payload>().user_header::<$header>().open().ok()
+            });
+            publishing(service.as_ref().map(|s| s.dynamic_config()))
+        }};
+    }
+    vec![
+        ("ingest", up!("frames", [u8], FrameHeader)),
+        ("flow", up!("particles", [ScenePoint], ParticleHeader)),
+        ("cluster", up!("clusters", ClusterSet, ())),
+        ("publish", up!("trajectories", TrajectorySample, ())),
+    ]
+}
+
 /// Nanoseconds since the Unix epoch (0 if the clock is before it).
 pub fn unix_now_ns() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)

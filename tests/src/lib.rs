@@ -1,5 +1,7 @@
 //! Helpers for handflow's end-to-end tests: where the shared test data lives, and how to
-//! make small scenes from it.
+//! make small scenes from it; [`browser`] drives headless Chromium.
+
+pub mod browser;
 
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;

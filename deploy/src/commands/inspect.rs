@@ -32,8 +32,9 @@ use handflow_publish::{trajectory_sample, TrajectoryRecord};
 use image::RgbImage;
 use nalgebra::Point3;
 
-use crate::commands::overlay::{draw_disc, draw_line, draw_tracks, TAIL};
+use crate::commands::overlay::TAIL;
 use crate::commands::track::{tracker_stages, TrackOptions};
+use handflow_publish::drawing::{draw_disc, draw_line, draw_tracks, put};
 
 /// The picture layers written per camera, in montage column order.
 pub const LAYERS: [&str; 5] = ["skin", "faces", "rays", "clusters", "tracks"];
@@ -357,7 +358,7 @@ fn rays_picture(photo: &RgbImage, engine: &SceneFlowEngine, camera: usize) -> Rg
             let (x0, y0) = ((ray % field.width) * scale, (ray / field.width) * scale);
             for y in y0..y0 + scale {
                 for x in x0..x0 + scale {
-                    crate::commands::overlay::put(&mut img, x as i64, y as i64, colour);
+                    put(&mut img, x as i64, y as i64, colour);
                 }
             }
         } else if let Some(p) = field.position.get(ray).filter(|p| p.iter().all(|v| v.is_finite())) {
@@ -498,7 +499,7 @@ fn draw_label(img: &mut RgbImage, x: i64, y: i64, text: &str, colour: [u8; 3]) {
                     for dy in 0..scale {
                         for dx in 0..scale {
                             let (px, py) = (left + col * scale + dx, y + scale + r as i64 * scale + dy);
-                            crate::commands::overlay::put(img, px, py, colour);
+                            put(img, px, py, colour);
                         }
                     }
                 }

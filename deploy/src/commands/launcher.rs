@@ -26,6 +26,11 @@
 //! variant = "handflow"             # or "paper"
 //! max_restarts = 5                 # per stage, before the run gives up
 //!
+//! [viewer]                         # the live viewer page, served by the publisher
+//! enabled = true                   # default on
+//! listen = "127.0.0.1:8787"        # loopback unless the user says otherwise
+//! thumbnails_hz = 2.0              # per camera; 0 for none
+//!
 //! [network]                        # off unless given: trajectories to other machines
 //! zenoh = { listen = "tcp/127.0.0.1:7447" }   # or connect = "tcp/router:7447"; also
 //! #   rig = "studio-a"               # key expressions handflow/<rig>/... (default: the source's name)
@@ -87,6 +92,26 @@ pub struct Pipeline {
     pub max_restarts: u32,
     /// Where the trajectories go beyond this machine.
     pub network: Network,
+    /// The live viewer.
+    pub viewer: ViewerSettings,
+}
+
+/// The `[viewer]` table.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct ViewerSettings {
+    /// Serve the viewer.
+    pub enabled: bool,
+    /// Address to listen on.
+    pub listen: String,
+    /// Thumbnails per second per camera.
+    pub thumbnails_hz: f64,
+}
+
+impl Default for ViewerSettings {
+    fn default() -> Self {
+        Self { enabled: true, listen: handflow_publish::viewer::DEFAULT_ADDRESS.into(), thumbnails_hz: 2.0 }
+    }
 }
 
 /// The `[network]` table.
@@ -134,6 +159,7 @@ impl Default for Pipeline {
             variant: "handflow".into(),
             max_restarts: 5,
             network: Network::default(),
+            viewer: ViewerSettings::default(),
         }
     }
 }
@@ -189,6 +215,14 @@ impl Pipeline {
         }
         if self.services.is_empty() || self.services.contains(char::is_whitespace) {
             bail!("field `services`: `{}` is not a usable name prefix", self.services);
+        }
+        if self.viewer.enabled {
+            self.viewer.listen.parse::<std::net::SocketAddr>().with_context(|| {
+                format!("`[viewer] listen`: `{}` is not an address like 127.0.0.1:8787", self.viewer.listen)
+            })?;
+        }
+        if !(self.viewer.thumbnails_hz.is_finite() && self.viewer.thumbnails_hz >= 0.0) {
+            bail!("`[viewer] thumbnails_hz`: {} (expected 0 or more per second)", self.viewer.thumbnails_hz);
         }
         if let Some(z) = &self.network.zenoh {
             if z.listen.is_none() && z.connect.is_none() {
@@ -351,6 +385,19 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     }
     if p.ends() {
         publish_args.push("--exit-at-end".into());
+    }
+    if p.viewer.enabled {
+        publish_args.extend([
+            "--viewer".into(),
+            p.viewer.listen.clone(),
+            "--thumbnail-hz".into(),
+            p.viewer.thumbnails_hz.to_string(),
+        ]);
+        if p.viewer.listen.ends_with(":0") {
+            tracing::info!("viewer: the publisher picks a free port and logs its address");
+        } else {
+            tracing::info!("viewer: open http://{}/ in a browser", p.viewer.listen);
+        }
     }
     let bridge_args = p.network.zenoh.as_ref().map(|z| {
         let mut args = vec!["--rig".to_string(), p.rig_name()];
@@ -580,6 +627,24 @@ mod tests {
         let e = load(format!("recording = \"rec\"\ncalibration = \"rig.toml\"\n{}", camera("a", "gst:videotestsrc")))
             .unwrap_err();
         assert!(e.contains("not several"), "{e}");
+    }
+
+    #[test]
+    fn the_viewer_is_on_and_on_loopback_by_default_and_its_table_is_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.toml");
+        let load = |viewer: &str| {
+            std::fs::write(&path, format!("recording = \"r\"\n[viewer]\n{viewer}\n")).unwrap();
+            Pipeline::load(&path).map_err(|e| format!("{e:#}"))
+        };
+        let p = load("").unwrap();
+        assert!(p.viewer.enabled);
+        assert!(p.viewer.listen.parse::<std::net::SocketAddr>().unwrap().ip().is_loopback());
+        let off = load("enabled = false\nlisten = \"not checked when off\"").unwrap();
+        assert!(!off.viewer.enabled);
+        assert!(load("listen = \"localhost\"").unwrap_err().contains("`[viewer] listen`"));
+        assert!(load("thumbnails_hz = -1.0").unwrap_err().contains("thumbnails_hz"));
+        assert!(load("port = 8080").unwrap_err().contains("port"));
     }
 
     #[test]

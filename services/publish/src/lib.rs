@@ -4,9 +4,13 @@
 //! [`TrajectoryRecord`] is one frame's estimates as the JSON Lines file holds them,
 //! [`JsonLinesSink`] writes them, [`trajectory_sample`] turns a frame's labelled clusters
 //! into the sample subscribers receive, and [`SequenceGaps`] counts the frames lost
-//! upstream from the gaps in the ingest sequence.
+//! upstream from the gaps in the ingest sequence. [`viewer`] serves the live viewer page;
+//! [`drawing`] draws trajectories on camera images.
 
 #![cfg_attr(test, allow(clippy::unwrap_used))]
+
+pub mod drawing;
+pub mod viewer;
 
 use std::collections::BTreeMap;
 use std::io::Write;

@@ -9,6 +9,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use clap::Parser;
 use handflow_protocol::ipc::{self, Mode, Next, ServiceNames};
+use handflow_publish::viewer::{Viewer, ViewerOptions};
 use handflow_publish::{trajectory_sample, JsonLinesSink, SequenceGaps, TrajectoryRecord};
 
 #[derive(Parser, Debug)]
@@ -30,6 +31,13 @@ struct Args {
     /// Prefix of the service names.
     #[arg(long, default_value = ipc::DEFAULT_PREFIX)]
     services: String,
+    /// Serve the live viewer on this address (for example 127.0.0.1:8787; port 0 picks a
+    /// free one). Off when not given.
+    #[arg(long)]
+    viewer: Option<std::net::SocketAddr>,
+    /// Thumbnails per second per camera in the viewer (0: none).
+    #[arg(long, default_value_t = 2.0)]
+    thumbnail_hz: f64,
 }
 
 /// How long the publisher waits for the subscribers it was told to expect.
@@ -67,6 +75,25 @@ fn run(args: Args) -> Result<()> {
         }
         None => None,
     };
+    // The viewer is a window on the stream: if its address is taken, the stream goes on.
+    let viewer = args.viewer.and_then(|address| {
+        let options = ViewerOptions {
+            address,
+            thumbnail_hz: args.thumbnail_hz.max(0.0),
+            services: args.services.clone(),
+            mode: args.mode,
+        };
+        match Viewer::start(&options) {
+            Ok(viewer) => {
+                tracing::info!("viewer on http://{}/", viewer.address());
+                Some(viewer)
+            }
+            Err(e) => {
+                tracing::error!("no viewer: {e:#}");
+                None
+            }
+        }
+    });
     tracing::info!(
         "ready: trajectories on `{}`{}, {} mode",
         trajectories.name(),
@@ -112,6 +139,9 @@ fn run(args: Args) -> Result<()> {
         let out = trajectory_sample(&set, gaps.lost(), now);
         trajectories.publisher.send_copy(out).context("sending the trajectory sample")?;
         trajectories.notify()?;
+        if let Some(viewer) = &viewer {
+            viewer.publish(&out);
+        }
         if end {
             tracing::info!(
                 "end of stream: {published} trajectory samples, {} frames lost upstream, glass-to-trajectory p50 {:.1} ms, p99 {:.1} ms",
