@@ -471,6 +471,10 @@ struct BenchPipelineArgs {
     /// instead of preloading them (ingest as cameras delivering raw frames, the default).
     #[arg(long)]
     decode: bool,
+    /// Also run it with the live viewer serving and a client reading both its WebSockets,
+    /// right after the run without it: the viewer's cost.
+    #[arg(long)]
+    viewer: bool,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
@@ -775,27 +779,51 @@ fn bench_pipeline(args: &BenchPipelineArgs) -> Result<()> {
         Some(r) => r.clone(),
         None => demo_recording()?,
     };
-    let r = crate::bench::stream::bench_pipeline(&rec, args.seconds, !args.decode)?;
+    let mut runs = vec![crate::bench::stream::bench_pipeline(&rec, args.seconds, !args.decode, None)?];
+    if args.viewer {
+        // A free port on loopback, as a user's viewer would be.
+        let address = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?;
+        runs.push(crate::bench::stream::bench_pipeline(&rec, args.seconds, !args.decode, Some(address))?);
+    }
     if args.json {
-        out!("{}", serde_json::to_string(&r)?);
+        // One run: its object, as before; with the viewer: both, without it first.
+        let text = match &runs[..] {
+            [only] => serde_json::to_string(only)?,
+            both => serde_json::to_string(both)?,
+        };
+        out!("{text}");
         return Ok(());
     }
-    out!(
-        "live pipeline on `{}` at {:.0} frames/s ({}), {:.1} s measured: {:.1} trajectory samples/s, {} frame sets \
-         dropped",
-        r.recording,
-        r.input_fps,
-        if r.preloaded { "preloaded: raw frames" } else { "images decoded on the path" },
-        r.seconds,
-        r.output_fps,
-        r.dropped
-    );
-    out!(
-        "glass-to-trajectory latency p50 {:.1} ms, p99 {:.1} ms ({:.1} ms beyond the one-frame forwards/backwards delay)",
-        r.latency_p50_ms,
-        r.latency_p99_ms,
-        r.latency_p99_beyond_fb_ms
-    );
+    for r in &runs {
+        out!(
+            "live pipeline on `{}` at {:.0} frames/s ({}{}), {:.1} s measured: {:.1} trajectory samples/s, {} frame \
+             sets dropped",
+            r.recording,
+            r.input_fps,
+            if r.preloaded { "preloaded: raw frames" } else { "images decoded on the path" },
+            r.viewer.as_ref().map_or(String::new(), |v| format!(
+                "; viewer on {} read by a client: {} samples, {} thumbnails",
+                v.address, v.samples, v.thumbnails
+            )),
+            r.seconds,
+            r.output_fps,
+            r.dropped
+        );
+        out!(
+            "glass-to-trajectory latency p50 {:.1} ms, p99 {:.1} ms ({:.1} ms beyond the one-frame forwards/backwards delay)",
+            r.latency_p50_ms,
+            r.latency_p99_ms,
+            r.latency_p99_beyond_fb_ms
+        );
+    }
+    if let [without, with] = &runs[..] {
+        out!(
+            "with the viewer / without: samples/s x{:.3}, latency p50 x{:.2}, p99 x{:.2}",
+            with.output_fps / without.output_fps.max(1e-9),
+            with.latency_p50_ms / without.latency_p50_ms.max(1e-9),
+            with.latency_p99_ms / without.latency_p99_ms.max(1e-9)
+        );
+    }
     Ok(())
 }
 

@@ -173,6 +173,60 @@ pub struct PipelineResult {
     /// The 99th percentile minus one frame interval (the forwards/backwards delay, which
     /// the target is on top of), milliseconds.
     pub latency_p99_beyond_fb_ms: f64,
+    /// With the live viewer serving: what its clients received.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub viewer: Option<ViewerLoad>,
+}
+
+/// What a viewer client (the page's two WebSockets) received during a run.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ViewerLoad {
+    /// The viewer's address.
+    pub address: String,
+    /// Trajectory messages received.
+    pub samples: u64,
+    /// Thumbnails received.
+    pub thumbnails: u64,
+}
+
+/// Reads the viewer at `address` as its page does (both WebSockets, reconnecting) until
+/// `stop`; counts what arrives.
+fn read_viewer(
+    address: std::net::SocketAddr,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> std::thread::JoinHandle<ViewerLoad> {
+    use std::sync::atomic::Ordering;
+    let reader = |path: &'static str, stop: std::sync::Arc<std::sync::atomic::AtomicBool>| {
+        std::thread::spawn(move || {
+            let mut received = 0u64;
+            while !stop.load(Ordering::Relaxed) {
+                let Ok((mut socket, _)) = tungstenite::connect(format!("ws://{address}{path}")) else {
+                    std::thread::sleep(Duration::from_millis(100));
+                    continue;
+                };
+                if let tungstenite::stream::MaybeTlsStream::Plain(s) = socket.get_ref() {
+                    let _ = s.set_read_timeout(Some(Duration::from_millis(200)));
+                }
+                while !stop.load(Ordering::Relaxed) {
+                    match socket.read() {
+                        Ok(m) if m.is_text() || m.is_binary() => received += 1,
+                        Ok(_) => {}
+                        Err(tungstenite::Error::Io(e))
+                            if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {}
+                        Err(_) => break,
+                    }
+                }
+            }
+            received
+        })
+    };
+    let samples = reader("/ws/trajectories", stop.clone());
+    let thumbnails = reader("/ws/thumbnails", stop);
+    std::thread::spawn(move || ViewerLoad {
+        address: address.to_string(),
+        samples: samples.join().unwrap_or(0),
+        thumbnails: thumbnails.join().unwrap_or(0),
+    })
 }
 
 /// Seconds after the first trajectory sample that are not measured (face detections that
@@ -180,8 +234,14 @@ pub struct PipelineResult {
 const PIPELINE_WARM_UP_S: f64 = 3.0;
 
 /// Runs the live pipeline on `recording` (looped at its recorded rate; `preload`: decoded
-/// into memory first) for `seconds` plus the warm-up and measures its output.
-pub fn bench_pipeline(recording: &std::path::Path, seconds: f64, preload: bool) -> Result<PipelineResult> {
+/// into memory first) for `seconds` plus the warm-up and measures its output; with
+/// `viewer`, the live viewer serves there and a client reads both its WebSockets.
+pub fn bench_pipeline(
+    recording: &std::path::Path,
+    seconds: f64,
+    preload: bool,
+    viewer: Option<std::net::SocketAddr>,
+) -> Result<PipelineResult> {
     let rec = handflow_ingest::Recording::open(recording)?;
     let fps = rec.frame_rate();
     // One more second of frames: the warm-up counts from the first sample, not the start.
@@ -195,8 +255,15 @@ pub fn bench_pipeline(recording: &std::path::Path, seconds: f64, preload: bool) 
         frames: Some(frames),
         preload,
         services: prefix.clone(),
+        viewer: crate::commands::launcher::ViewerSettings {
+            enabled: viewer.is_some(),
+            listen: viewer.map(|a| a.to_string()).unwrap_or_default(),
+            ..Default::default()
+        },
         ..Pipeline::default()
     };
+    let stop_reader = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let viewer_reader = viewer.map(|address| read_viewer(address, stop_reader.clone()));
     let node = ipc::create_node("handflow-bench-pipeline")?;
     let input = ipc::trajectories_input(&node, &names, Mode::Live)?;
     let runner = std::thread::spawn(move || run_pipeline(&pipeline));
@@ -219,6 +286,8 @@ pub fn bench_pipeline(recording: &std::path::Path, seconds: f64, preload: bool) 
         Ok(Next::Continue)
     })?;
     let report = runner.join().map_err(|_| anyhow::anyhow!("the pipeline thread panicked"))??;
+    stop_reader.store(true, std::sync::atomic::Ordering::Relaxed);
+    let viewer = viewer_reader.and_then(|r| r.join().ok());
     anyhow::ensure!(report.completed, "the pipeline did not complete");
     let ((t0, d0), (t1, n, d1)) = first.zip(last).context("no trajectory samples after the warm-up")?;
     let measured = (t1 - t0).as_secs_f64();
@@ -233,5 +302,6 @@ pub fn bench_pipeline(recording: &std::path::Path, seconds: f64, preload: bool) 
         latency_p50_ms: percentile(&mut latencies, 0.5),
         latency_p99_ms: p99,
         latency_p99_beyond_fb_ms: p99 - 1e3 / fps,
+        viewer,
     })
 }
