@@ -81,13 +81,7 @@ async fn trajectories_socket(
     headers: HeaderMap,
     upgrade: WebSocketUpgrade,
 ) -> Response {
-    if let Err(refused) = check_socket(&shared, &headers) {
-        return refused.into_response();
-    }
-    upgrade.on_upgrade(move |socket| async move {
-        let receiver = shared.samples.subscribe();
-        forward(socket, receiver, Vec::new(), &shared, Message::Text).await;
-    })
+    open_socket(shared, &headers, upgrade, |s| (s.samples.subscribe(), Vec::new()), Message::Text)
 }
 
 async fn thumbnails_socket(
@@ -95,14 +89,25 @@ async fn thumbnails_socket(
     headers: HeaderMap,
     upgrade: WebSocketUpgrade,
 ) -> Response {
-    if let Err(refused) = check_socket(&shared, &headers) {
+    // A new page sees every camera at once, not after the next thumbnail.
+    open_socket(shared, &headers, upgrade, |s| (s.thumbnails.subscribe(), s.latest_thumbnails()), Message::Binary)
+}
+
+/// Upgrades a request that passes [`check_socket`] to a WebSocket fed by the stream
+/// `start` subscribes to (after the messages it returns first).
+fn open_socket<T: Clone + Send + 'static>(
+    shared: Arc<Shared>,
+    headers: &HeaderMap,
+    upgrade: WebSocketUpgrade,
+    start: fn(&Shared) -> (tokio::sync::broadcast::Receiver<T>, Vec<T>),
+    message: fn(T) -> Message,
+) -> Response {
+    if let Err(refused) = check_socket(&shared, headers) {
         return refused.into_response();
     }
     upgrade.on_upgrade(move |socket| async move {
-        let receiver = shared.thumbnails.subscribe();
-        // A new page sees every camera at once, not after the next thumbnail.
-        let latest = shared.latest_thumbnails();
-        forward(socket, receiver, latest, &shared, Message::Binary).await;
+        let (receiver, first) = start(&shared);
+        forward(socket, receiver, first, &shared, message).await;
     })
 }
 
