@@ -53,9 +53,28 @@ fn chromium_or_skip() -> Option<std::path::PathBuf> {
     found
 }
 
+/// A running `handflow run`, stopped (SIGINT, as Ctrl-C) however the test ends: a failed
+/// assertion must not leave a looping pipeline behind.
+struct RunningPipeline(Child);
+
+impl Drop for RunningPipeline {
+    fn drop(&mut self) {
+        let child = &mut self.0;
+        let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(child.id() as i32), nix::sys::signal::Signal::SIGINT);
+        let started = Instant::now();
+        while matches!(child.try_wait(), Ok(None)) {
+            if started.elapsed() > Duration::from_secs(30) {
+                let _ = child.kill();
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
 /// `handflow run` on `rec`, looped at the recorded pace, with the viewer on `port`.
-fn start_pipeline(rec: &Path, out: &Path, prefix: &str, port: u16, log: &Path) -> Child {
-    Command::new(binaries_dir().join("handflow"))
+fn start_pipeline(rec: &Path, out: &Path, prefix: &str, port: u16, log: &Path) -> RunningPipeline {
+    let child = Command::new(binaries_dir().join("handflow"))
         .args(["run", "--loop", "--pace", "recorded", "--services", prefix, "--viewer"])
         .arg(format!("127.0.0.1:{port}"))
         .arg("--recording")
@@ -66,19 +85,8 @@ fn start_pipeline(rec: &Path, out: &Path, prefix: &str, port: u16, log: &Path) -
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(log).unwrap())
         .spawn()
-        .unwrap()
-}
-
-fn stop(mut child: Child) {
-    let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(child.id() as i32), nix::sys::signal::Signal::SIGINT);
-    let started = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if started.elapsed() > Duration::from_secs(30) {
-            let _ = child.kill();
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
+        .unwrap();
+    RunningPipeline(child)
 }
 
 /// Records of the trajectory file written so far.
@@ -231,5 +239,5 @@ fn the_viewer_follows_a_replay_in_a_real_browser_reconnects_after_a_restart_and_
     assert!(result.starts_with("closed"), "a page of another origin opened the viewer's WebSocket: {result}");
 
     drop(browser);
-    stop(run);
+    drop(run);
 }

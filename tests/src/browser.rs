@@ -3,6 +3,7 @@
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
+use std::os::unix::process::CommandExt as _;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -23,10 +24,22 @@ pub fn chromium_binary() -> Option<PathBuf> {
         .find(|candidate| candidate.is_file())
 }
 
+/// The browser's process group, killed when dropped.
+struct BrowserProcess(Child);
+
+impl Drop for BrowserProcess {
+    fn drop(&mut self) {
+        let group = nix::unistd::Pid::from_raw(-(self.0.id() as i32));
+        let _ = nix::sys::signal::kill(group, nix::sys::signal::Signal::SIGKILL);
+        let _ = self.0.wait();
+    }
+}
+
 /// A headless Chromium and a DevTools connection to its one page.
 pub struct Browser {
-    child: Child,
     page: WebSocket<MaybeTlsStream<TcpStream>>,
+    /// Killed after the connection closes (fields drop in order).
+    _process: BrowserProcess,
     next_id: u64,
     _profile: tempfile::TempDir,
 }
@@ -36,7 +49,7 @@ impl Browser {
     /// a `width` x `height` viewport.
     pub fn start(binary: &Path, width: u32, height: u32) -> Browser {
         let profile = tempfile::tempdir().expect("a profile folder");
-        let mut child = Command::new(binary)
+        let child = Command::new(binary)
             .args([
                 "--headless=new",
                 "--no-sandbox",
@@ -54,10 +67,14 @@ impl Browser {
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
+            // Its own process group, so that its helpers (zygote, renderers) go with it.
+            .process_group(0)
             .spawn()
             .unwrap_or_else(|e| panic!("starting `{}`: {e}", binary.display()));
+        // Stopped however the rest of the start goes.
+        let mut child = BrowserProcess(child);
         // Chromium says where its DevTools listen on standard error.
-        let stderr = child.stderr.take().expect("piped standard error");
+        let stderr = child.0.stderr.take().expect("piped standard error");
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
             for line in BufReader::new(stderr).lines().map_while(Result::ok) {
@@ -73,7 +90,7 @@ impl Browser {
         if let MaybeTlsStream::Plain(stream) = page.get_ref() {
             stream.set_read_timeout(Some(Duration::from_secs(30))).expect("a read timeout");
         }
-        let mut browser = Browser { child, page, next_id: 1, _profile: profile };
+        let mut browser = Browser { page, _process: child, next_id: 1, _profile: profile };
         // The window's size includes the browser's own bars: the page gets exactly this.
         browser.call(
             "Emulation.setDeviceMetricsOverride",
@@ -144,8 +161,7 @@ impl Browser {
 impl Drop for Browser {
     fn drop(&mut self) {
         let _ = self.page.close(None);
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        // The process group goes with `child`.
     }
 }
 
