@@ -61,7 +61,9 @@ pub fn strip_extension(name: &str) -> &str {
 /// is 1), `None` without digits or when the run does not fit in a `u64`.
 pub fn camera_number(name: &str) -> Option<u64> {
     let end = name.rfind(|c: char| c.is_ascii_digit())? + 1;
-    let start = name[..end].rfind(|c: char| !c.is_ascii_digit()).map_or(0, |i| i + 1);
+    // After the last character that is not a digit, whatever its width (`caméra1`).
+    let start =
+        name[..end].char_indices().rev().find(|(_, c)| !c.is_ascii_digit()).map_or(0, |(i, c)| i + c.len_utf8());
     name[start..end].parse().ok()
 }
 
@@ -174,6 +176,10 @@ mod tests {
         assert_eq!(camera_number("cam01_json"), Some(1));
         assert_eq!(camera_number("cam_12"), Some(12));
         assert_eq!(camera_number("front"), None);
+        // A name with letters wider than a byte before its number (found by fuzzing).
+        assert_eq!(camera_number("caméra1"), Some(1));
+        assert_eq!(camera_number("cam_é12"), Some(12));
+        assert_eq!(camera_number("é"), None);
         assert_eq!(strip_extension("cam_0.mp4"), "cam_0");
         assert_eq!(strip_extension("cam.1"), "cam.1");
         assert_eq!(strip_extension(".hidden"), ".hidden");

@@ -34,12 +34,10 @@ pub(super) fn camera_images(dir: &Path, camera: &str) -> Result<BTreeMap<u64, Pa
     Ok(images)
 }
 
-/// The last run of digits in a file's stem.
+/// The last run of digits in a file's stem (`frame_é0012.png` is 12), read as a camera's
+/// number is.
 pub(super) fn frame_number(path: &Path) -> Option<u64> {
-    let stem = path.file_stem()?.to_str()?;
-    let end = stem.rfind(|c: char| c.is_ascii_digit())? + 1;
-    let start = stem[..end].rfind(|c: char| !c.is_ascii_digit()).map_or(0, |i| i + 1);
-    stem[start..end].parse().ok()
+    crate::camera_match::camera_number(path.file_stem()?.to_str()?)
 }
 
 pub(super) fn file_name(path: &Path) -> String {
