@@ -312,6 +312,8 @@ fn fuzz(target: &Target, cases: u64, seed: u64) -> (u64, Vec<String>) {
     let mut rng = Rng(seed | 1);
     let mut problems = Vec::new();
     let mut refused = 0u64;
+    // `HANDFLOW_FUZZ_SHOW=N` prints every N-th refusal, to read what users would be told.
+    let show: u64 = std::env::var("HANDFLOW_FUZZ_SHOW").ok().and_then(|v| v.parse().ok()).unwrap_or(0);
     assert!(!target.seeds.is_empty(), "{}: no seed inputs", target.name);
     let others: Vec<Vec<u8>> = target.seeds.iter().map(|(_, bytes)| bytes.clone()).collect();
     for case in 0..cases {
@@ -322,8 +324,12 @@ fn fuzz(target: &Target, cases: u64, seed: u64) -> (u64, Vec<String>) {
             Ok(Ok(())) => {}
             Ok(Err(message)) => {
                 refused += 1;
-                if message.trim().is_empty() {
-                    problems.push(format!("{} case {case}: refused without a message", target.name));
+                if show > 0 && refused % show == 0 {
+                    println!("  {}: {}", target.name, message.replace('\n', " / "));
+                }
+                // A message, and one whose reason is not cut off after its colon.
+                if message.trim().is_empty() || message.trim_end().ends_with(':') {
+                    problems.push(format!("{} case {case}: refused without a reason: `{message}`", target.name));
                 }
             }
             Err(_) => {

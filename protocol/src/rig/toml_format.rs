@@ -121,7 +121,13 @@ pub(super) fn syntax_error(text: &str, error: &toml::de::Error) -> RigError {
         }
         None => (None, None),
     };
-    RigError::Syntax { line, column, message: error.message().trim().to_owned() }
+    let mut message = error.message().trim().to_owned();
+    if message.is_empty() {
+        // toml says nothing for some inputs: show the line it stopped on instead.
+        let at = line.and_then(|l| text.lines().nth(l - 1)).unwrap_or_default();
+        message = format!("this line does not parse as TOML: `{}`", at.trim());
+    }
+    RigError::Syntax { line, column, message }
 }
 
 /// Where a problem is: the camera table's key and, once read, its name.
