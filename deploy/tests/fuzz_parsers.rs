@@ -324,7 +324,7 @@ fn fuzz(target: &Target, cases: u64, seed: u64) -> (u64, Vec<String>) {
             Ok(Ok(())) => {}
             Ok(Err(message)) => {
                 refused += 1;
-                if show > 0 && refused % show == 0 {
+                if show > 0 && refused.is_multiple_of(show) {
                     println!("  {}: {}", target.name, message.replace('\n', " / "));
                 }
                 // A message, and one whose reason is not cut off after its colon.
