@@ -8,7 +8,7 @@
 //!
 //! `cargo test -p handflow --test fuzz_parsers` runs a few hundred inputs per parser;
 //! `scripts/fuzz.sh` runs a million each (`HANDFLOW_FUZZ_CASES`) in a release build. An input
-//! that made a parser panic is written to `target/fuzz-findings/<parser>/`; once fixed, it goes
+//! that made a parser panic (or hang, over 10 s) is written to `target/fuzz-findings/<parser>/`; once fixed, it goes
 //! into `tests/fixtures/fuzz/<parser>/`, which every test run replays.
 
 #![allow(clippy::unwrap_used)]
@@ -304,11 +304,43 @@ fn targets() -> Vec<Target> {
     ]
 }
 
+/// A parser that takes longer than this on one input hangs: the input is saved and the run
+/// ends (a thread cannot be stopped from outside).
+const HANG: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// The input being parsed and since when, for the watchdog.
+type Current = std::sync::Arc<std::sync::Mutex<(std::time::Instant, Vec<u8>)>>;
+
+/// Saves the input of a parser that hangs and ends the process.
+fn watchdog(
+    name: &'static str,
+    findings_dir: PathBuf,
+    current: Current,
+    done: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) {
+    std::thread::spawn(move || {
+        while !done.load(std::sync::atomic::Ordering::Relaxed) {
+            std::thread::sleep(std::time::Duration::from_millis(500));
+            let (since, input) = current.lock().unwrap().clone();
+            if since.elapsed() > HANG {
+                std::fs::create_dir_all(&findings_dir).unwrap();
+                let path = findings_dir.join("hang");
+                std::fs::write(&path, &input).unwrap();
+                eprintln!("{name}: an input hangs the parser (over {HANG:?}); saved as {}", path.display());
+                std::process::exit(3);
+            }
+        }
+    });
+}
+
 /// What fuzzing `target` with `cases` inputs found: panics (their inputs saved) and refusals
 /// without a message.
 fn fuzz(target: &Target, cases: u64, seed: u64) -> (u64, Vec<String>) {
     let dir = tempfile::tempdir().unwrap();
     let findings_dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("../fuzz-findings").join(target.name);
+    let current: Current = std::sync::Arc::new(std::sync::Mutex::new((std::time::Instant::now(), Vec::new())));
+    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    watchdog(target.name, findings_dir.clone(), current.clone(), done.clone());
     let mut rng = Rng(seed | 1);
     let mut problems = Vec::new();
     let mut refused = 0u64;
@@ -319,6 +351,7 @@ fn fuzz(target: &Target, cases: u64, seed: u64) -> (u64, Vec<String>) {
     for case in 0..cases {
         let (name, base) = &target.seeds[rng.below(target.seeds.len())];
         let input = mutate(base, &others, &mut rng);
+        *current.lock().unwrap() = (std::time::Instant::now(), input.clone());
         let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| (target.run)(dir.path(), name, &input)));
         match outcome {
             Ok(Ok(())) => {}
@@ -343,6 +376,7 @@ fn fuzz(target: &Target, cases: u64, seed: u64) -> (u64, Vec<String>) {
             break;
         }
     }
+    done.store(true, std::sync::atomic::Ordering::Relaxed);
     (refused, problems)
 }
 

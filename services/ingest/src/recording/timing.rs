@@ -205,7 +205,9 @@ fn group_by_time(rows: &[(u64, Option<u64>, f64, usize)]) -> BTreeMap<(u64, u64)
             per_camera.iter().filter_map(|(c, list)| list.get(next[c]).map(|r| (*c, r.1))).collect();
         let Some(first) = heads.iter().map(|h| h.1).min_by(f64::total_cmp) else { break };
         for (cam, time) in heads {
-            if time < first + half {
+            // A difference, not `first + half`: where `half` is below `first`'s precision the
+            // sum is `first` itself, no camera would join, and the loop would never end.
+            if time - first < half {
                 let k = next[&cam];
                 grouped.insert((sync, cam), per_camera[&cam][k]);
                 next.insert(cam, k + 1);
@@ -224,6 +226,23 @@ mod tests {
         let path = dir.path().join(CALISCOPE_TIMESTAMPS_FILE);
         std::fs::write(&path, text).expect("write");
         (dir, path)
+    }
+
+    #[test]
+    fn grouping_by_time_ends_when_the_frame_interval_is_below_the_times_precision() {
+        // Found by fuzzing: a camera at 1e20 s (spacing 16384 s there) and one whose frames
+        // are a microsecond apart made half an interval vanish in `1e20 + half`.
+        let (_d, path) = write(
+            "cam_id,frame_time
+0,1e20
+0,1.00000000000000016384e20
+1,0.0
+1,0.000001
+1,0.000002
+",
+        );
+        let sets = read_caliscope_timestamps(&path).expect("parses");
+        assert_eq!(sets.len(), 5, "every frame in a set of its own: {sets:?}");
     }
 
     #[test]
