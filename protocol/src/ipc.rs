@@ -678,11 +678,7 @@ pub fn wait_for_rig(node: &IpcNode, names: &ServiceNames) -> Result<Option<(RigH
         let sample = input.subscriber.receive().map_err(|e| IpcError::new(&name, format!("receive: {e:?}")))?;
         if let Some(sample) = sample {
             let header = *sample.user_header();
-            header.validate(sample.payload().len()).map_err(|e| IpcError::new(&name, e))?;
-            let text =
-                std::str::from_utf8(sample.payload()).map_err(|e| IpcError::new(&name, format!("rig text: {e}")))?;
-            let rig = crate::Rig::from_toml_str(text).map_err(|e| IpcError::new(&name, format!("rig: {e}")))?;
-            return Ok(Some((header, rig)));
+            return parse_rig(&name, &header, sample.payload()).map(|rig| Some((header, rig)));
         }
         if !announced {
             tracing::info!("waiting for the rig calibration on `{name}`");
@@ -733,6 +729,14 @@ pub fn stage_health(node: &IpcNode, names: &ServiceNames) -> Vec<(&'static str, 
         ("cluster", up!("clusters", ClusterSet, ())),
         ("publish", up!("trajectories", TrajectorySample, ())),
     ]
+}
+
+/// The rig calibration of a sample of service `name`: its header checked against the payload,
+/// the payload read as the rig's TOML.
+pub fn parse_rig(name: &str, header: &RigHeader, payload: &[u8]) -> Result<crate::Rig, IpcError> {
+    header.validate(payload.len()).map_err(|e| IpcError::new(name, e))?;
+    let text = std::str::from_utf8(payload).map_err(|e| IpcError::new(name, format!("rig text: {e}")))?;
+    crate::Rig::from_toml_str(text).map_err(|e| IpcError::new(name, format!("rig: {e}")))
 }
 
 /// Nanoseconds since the Unix epoch (0 if the clock is before it).

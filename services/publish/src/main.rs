@@ -139,8 +139,9 @@ fn run(args: Args) -> Result<()> {
         let out = trajectory_sample(&set, gaps.lost(), now);
         trajectories.publisher.send_copy(out).context("sending the trajectory sample")?;
         trajectories.notify()?;
+        let record = TrajectoryRecord::from_sample(&out);
         if let Some(viewer) = &viewer {
-            viewer.publish(&out);
+            viewer.publish(&out, &record);
         }
         if end {
             tracing::info!(
@@ -162,7 +163,7 @@ fn run(args: Args) -> Result<()> {
             latencies.0.push(now.saturating_sub(set.capture_unix_ns) as f64 * 1e-9);
         }
         if let Some(sink) = sink.as_mut() {
-            sink.write(&TrajectoryRecord::from_sample(&out)).context("writing the trajectory file")?;
+            sink.write(&record).context("writing the trajectory file")?;
         }
         Ok(Next::Continue)
     })?;

@@ -29,8 +29,9 @@ pub struct StreamFigures {
 }
 
 impl StreamFigures {
-    /// Notes a sample that arrived at `now` (an end of stream included).
-    pub fn on_sample(&mut self, sample: &TrajectorySample, now: Instant) {
+    /// Notes a sample (`record` is its record) that arrived at `now` (an end of stream
+    /// included).
+    pub fn on_sample(&mut self, sample: &TrajectorySample, record: &TrajectoryRecord, now: Instant) {
         if sample.is_end_of_stream() {
             self.ended = true;
             return;
@@ -54,7 +55,7 @@ impl StreamFigures {
         self.missing_views = sample.missing_views;
         self.last_frame = Some(sample.frame);
         self.last_arrival = Some(now);
-        self.tracks = TrajectoryRecord::from_sample(sample).objects;
+        self.tracks.clone_from(&record.objects);
     }
 
     /// Samples per second over the last few seconds (`None` before two samples).
@@ -101,12 +102,11 @@ pub fn latency_ms(sample: &TrajectorySample) -> Option<f64> {
 }
 
 /// The WebSocket message of a sample: `{"type":"sample", ...the trajectory file's record,
-/// "sequence", "latency_ms"}`, or `{"type":"end","sequence"}`.
-pub fn sample_message(sample: &TrajectorySample) -> String {
+/// "sequence", "latency_ms"}` (`record` is the sample's record), or `{"type":"end","sequence"}`.
+pub fn sample_message(sample: &TrajectorySample, record: &TrajectoryRecord) -> String {
     if sample.is_end_of_stream() {
         return json!({ "type": "end", "sequence": sample.sequence }).to_string();
     }
-    let record = TrajectoryRecord::from_sample(sample);
     json!({
         "type": "sample",
         "sequence": sample.sequence,
@@ -140,7 +140,8 @@ mod tests {
         let t0 = Instant::now();
         let mut f = StreamFigures::default();
         for k in 0..=20u64 {
-            f.on_sample(&sample(k, 10 + k), t0 + Duration::from_millis(100 * k));
+            let s = sample(k, 10 + k);
+            f.on_sample(&s, &TrajectoryRecord::from_sample(&s), t0 + Duration::from_millis(100 * k));
         }
         let now = t0 + Duration::from_millis(2000);
         let rate = f.rate_hz(now).expect("rate");
@@ -159,19 +160,20 @@ mod tests {
     fn an_end_of_stream_is_reported_and_the_next_stream_starts_afresh() {
         let t0 = Instant::now();
         let mut f = StreamFigures::default();
-        f.on_sample(&sample(1, 5), t0);
+        f.on_sample(&sample(1, 5), &TrajectoryRecord::from_sample(&sample(1, 5)), t0);
         let end = TrajectorySample { flags: END_OF_STREAM, sequence: 2, ..Default::default() };
-        f.on_sample(&end, t0);
+        f.on_sample(&end, &TrajectoryRecord::from_sample(&end), t0);
         assert_eq!(f.to_json(t0).0["ended"], true);
-        assert_eq!(sample_message(&end), r#"{"sequence":2,"type":"end"}"#);
-        f.on_sample(&sample(1, 5), t0);
+        assert_eq!(sample_message(&end, &TrajectoryRecord::from_sample(&end)), r#"{"sequence":2,"type":"end"}"#);
+        f.on_sample(&sample(1, 5), &TrajectoryRecord::from_sample(&sample(1, 5)), t0);
         let (stream, _) = f.to_json(t0);
         assert_eq!((stream["ended"].as_bool(), stream["samples"].as_u64()), (Some(false), Some(1)));
     }
 
     #[test]
     fn a_sample_message_carries_the_trajectory_files_record() {
-        let v: Value = serde_json::from_str(&sample_message(&sample(7, 12))).expect("json");
+        let s = sample(7, 12);
+        let v: Value = serde_json::from_str(&sample_message(&s, &TrajectoryRecord::from_sample(&s))).expect("json");
         assert_eq!(v["type"], "sample");
         assert_eq!(v["frame"], 7);
         assert_eq!(v["latency_ms"], 12.0);

@@ -27,6 +27,8 @@ use tokio::sync::broadcast;
 
 use figures::StreamFigures;
 
+use crate::TrajectoryRecord;
+
 /// Default address of the viewer: loopback only.
 pub const DEFAULT_ADDRESS: &str = "127.0.0.1:8787";
 /// Samples a client may fall behind before it skips some.
@@ -179,7 +181,7 @@ pub fn rig_json(rig: &Rig, frame_rate_hz: f64) -> Value {
 /// The running viewer, as the publisher holds it.
 pub struct Viewer {
     shared: Arc<Shared>,
-    to_monitor: mpsc::SyncSender<TrajectorySample>,
+    to_monitor: mpsc::SyncSender<TrajectoryRecord>,
     address: SocketAddr,
 }
 
@@ -221,10 +223,12 @@ impl Viewer {
         self.address
     }
 
-    /// Hands a published sample to the viewer; never waits.
-    pub fn publish(&self, sample: &TrajectorySample) {
-        lock(&self.shared.figures).on_sample(sample, Instant::now());
-        let _ = self.shared.samples.send(Utf8Bytes::from(figures::sample_message(sample)));
-        let _ = self.to_monitor.try_send(*sample);
+    /// Hands a published sample (and its record) to the viewer; never waits.
+    pub fn publish(&self, sample: &TrajectorySample, record: &TrajectoryRecord) {
+        lock(&self.shared.figures).on_sample(sample, record, Instant::now());
+        let _ = self.shared.samples.send(Utf8Bytes::from(figures::sample_message(sample, record)));
+        if !sample.is_end_of_stream() {
+            let _ = self.to_monitor.try_send(record.clone());
+        }
     }
 }

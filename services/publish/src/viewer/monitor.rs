@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
 use handflow_protocol::ipc::{self, Input, Receive, ServiceNames};
-use handflow_protocol::messages::{camera_state, CameraStatusSet, FrameHeader, TrajectorySample};
+use handflow_protocol::messages::{camera_state, CameraStatusSet, FrameHeader};
 use handflow_protocol::Rig;
 use image::RgbImage;
 use serde_json::{json, Value};
@@ -39,7 +39,7 @@ pub fn run(
     shared: &Shared,
     names: &ServiceNames,
     thumbnail_interval: Option<Duration>,
-    samples: &Receiver<TrajectorySample>,
+    samples: &Receiver<TrajectoryRecord>,
 ) {
     let node = match ipc::create_node("handflow-viewer") {
         Ok(node) => node,
@@ -65,10 +65,11 @@ pub fn run(
     while !ipc::stop_requested() {
         let now = Instant::now();
         if let Ok(Some(sample)) = rig_input.receive_one() {
-            match parse_rig(*sample.user_header(), sample.payload()) {
-                Ok((version, rate, new)) => {
-                    shared.set_rig(&new, rate);
-                    rig = Some((version, new));
+            let header = *sample.user_header();
+            match ipc::parse_rig(&names.rig(), &header, sample.payload()) {
+                Ok(new) => {
+                    shared.set_rig(&new, header.frame_rate_hz);
+                    rig = Some((header.rig_version, new));
                     pending = None;
                 }
                 Err(e) => tracing::error!("viewer: {e}"),
@@ -110,11 +111,7 @@ pub fn run(
                 next_thumbnail = Instant::now() + thumbnail_interval.unwrap_or(RECHECK);
             }
         }
-        while let Ok(sample) = samples.try_recv() {
-            if sample.is_end_of_stream() {
-                continue;
-            }
-            let record = TrajectoryRecord::from_sample(&sample);
+        while let Ok(record) = samples.try_recv() {
             if tail.back().is_some_and(|last| record.frame < last.frame) {
                 tail.clear(); // A new stream.
             }
@@ -145,13 +142,6 @@ pub fn run(
             break;
         }
     }
-}
-
-fn parse_rig(header: handflow_protocol::messages::RigHeader, payload: &[u8]) -> Result<(u32, f64, Rig), String> {
-    header.validate(payload.len()).map_err(|e| format!("rig calibration: {e}"))?;
-    let text = std::str::from_utf8(payload).map_err(|e| format!("rig calibration text: {e}"))?;
-    let rig = Rig::from_toml_str(text).map_err(|e| format!("rig calibration: {e}"))?;
-    Ok((header.rig_version, header.frame_rate_hz, rig))
 }
 
 /// Draws the tracks up to the pending frame on its views and sends them.
