@@ -20,6 +20,7 @@ import argparse
 import ctypes
 import json
 import math
+import os
 import sys
 
 PROTOCOL_VERSION = 3
@@ -178,6 +179,16 @@ def run_zenoh(endpoint, rig):
                 return 0
 
 
+def handflow_iceoryx2_config(iox2):
+    """handflow keeps each user's iceoryx2 files apart (protocol/src/ipc.rs, UserNamespace):
+    a directory and a file prefix of the user's own. A subscriber must use the same."""
+    uid = os.geteuid()
+    config = iox2.config.default()
+    config.global_cfg.root_path = iox2.Path.new(f"/tmp/handflow-iox2-{uid}/")
+    config.global_cfg.prefix = iox2.FileName.new(f"hf{uid}_")
+    return config
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--services", default="handflow", help="prefix of the pipeline's service names")
@@ -190,7 +201,7 @@ def main():
     import iceoryx2 as iox2
 
     iox2.set_log_level_from_env_or(iox2.LogLevel.Error)
-    node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
+    node = iox2.NodeBuilder.new().config(handflow_iceoryx2_config(iox2)).create(iox2.ServiceType.Ipc)
     name = f"{args.services}/trajectories"
     # The publisher owns the service's settings (replay or live): open it as it is, and
     # wait for the pipeline if it has not started yet.

@@ -507,3 +507,96 @@ fn a_slow_subscriber_never_stalls_a_live_pipeline() {
     assert_eq!(published + dropped, frames as usize - 1, "published + dropped = frames - 1\n{}", log.text());
     assert!(received * 2 < published, "the slow subscriber lost samples instead of slowing the publisher");
 }
+
+/// Whether this test process runs as root and can run commands as another user.
+fn can_run_as_nobody() -> bool {
+    use std::os::unix::fs::MetadataExt;
+    let root = std::fs::metadata("/proc/self").map(|m| m.uid() == 0).unwrap_or(false);
+    root && Command::new("runuser").arg("--help").stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok()
+}
+
+#[test]
+fn a_second_pipeline_under_a_running_ones_prefix_is_refused_and_other_users_never_see_it() {
+    let _one = serial();
+    let prefix = unique_prefix("collide");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("first.jsonl");
+    let mut first =
+        launcher(&["--preset", "signer-3cam", "--mode", "live", "--loop", "--services", &prefix, "--out", str(&out)]);
+    let _first_log = Log::capture(&mut first);
+    let started = Instant::now();
+    while lines_in(&out) < 3 {
+        assert!(started.elapsed() < Duration::from_secs(120), "the first pipeline publishes");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let second_out = dir.path().join("second.jsonl");
+    let mut second = launcher(&[
+        "--preset",
+        "signer-3cam",
+        "--mode",
+        "live",
+        "--loop",
+        "--services",
+        &prefix,
+        "--out",
+        str(&second_out),
+    ]);
+    let second_log = Log::capture(&mut second);
+    let status = wait_with_timeout(&mut second, Duration::from_secs(30));
+    let text = second_log.text();
+    assert!(!status.success(), "the second pipeline must not start:\n{text}");
+    assert!(text.contains("already running under the services prefix") && text.contains(&prefix), "{text}");
+    assert!(!second_out.exists(), "the refused pipeline writes nothing");
+    if can_run_as_nobody() {
+        // Another user's subscriber lives in its own iceoryx2 namespace: it starts (iceoryx2's
+        // shared directory would refuse it) and does not see this user's pipeline.
+        // `tap` waits for a pipeline to appear; `timeout` interrupts it after 5 s.
+        let tap = Command::new("runuser")
+            .args([
+                "-u",
+                "nobody",
+                "--",
+                "timeout",
+                "-s",
+                "INT",
+                "5",
+                binaries_dir().join("handflow").to_str().unwrap(),
+            ])
+            .args(["tap", "trajectories", "--count", "1", "--services", &prefix])
+            .current_dir("/")
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&tap.stderr);
+        assert!(!tap.status.success(), "{text}");
+        assert!(text.contains("waiting for") && text.contains("interrupted before"), "{text}");
+    } else {
+        eprintln!("skipping the other-user half: not root, or no runuser");
+    }
+    let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(first.id() as i32), nix::sys::signal::Signal::SIGINT);
+    wait_with_timeout(&mut first, Duration::from_secs(30));
+}
+
+#[test]
+fn killing_the_publisher_keeps_its_file_and_its_count_of_losses() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 120u32;
+    let rec_dir = render_preset(dir.path(), "signer-3cam", frames, None);
+    let out = dir.path().join("trajectories.jsonl");
+    let (mut run, log, _) = replay_and_kill("handflow-publish", &rec_dir, &out);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
+    let text = log.text();
+    assert!(status.success(), "the run failed after the kill:\n{text}");
+    assert!(text.contains("going on from sequence"), "the publisher resumes its count:\n{text}");
+    let records = read_tracks(&out).unwrap();
+    let present: BTreeSet<u64> = records.iter().map(|r| r.frame).collect();
+    assert_eq!(present.len(), records.len(), "no frame twice");
+    assert!(present.contains(&1) && present.contains(&40), "the records before the kill stay in the file");
+    let missing: BTreeSet<u64> = (1..u64::from(frames)).filter(|f| !present.contains(f)).collect();
+    assert_eq!(reported_losses(&text), missing, "every frame is in the file or reported lost, once");
+    assert!(missing.len() <= 3, "at most the frames in flight are lost: {missing:?}");
+    let last = records.last().unwrap();
+    assert_eq!(last.frame, u64::from(frames) - 1);
+    assert_eq!(last.dropped_frames, missing.len() as u64, "the running count spans the restart");
+    eprintln!("publisher killed and restarted; frames lost: {missing:?}");
+}

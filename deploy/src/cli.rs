@@ -398,6 +398,29 @@ enum BenchCommand {
     Pipeline(BenchPipelineArgs),
     /// Reading a recording's videos into frame sets against reading the same frames as PNGs.
     Decode(BenchDecodeArgs),
+    /// The live pipeline on a looped recording for a long time: each stage's memory and file
+    /// descriptors, rate and latency, window by window.
+    Soak(BenchSoakArgs),
+}
+
+#[derive(Args, Debug)]
+struct BenchSoakArgs {
+    /// Recording replayed (looped) at its recorded rate; the demo's `signer-3cam` by default
+    /// (rendered first if need be).
+    #[arg(long)]
+    recording: Option<PathBuf>,
+    /// Minutes measured, after a 10 s warm-up.
+    #[arg(long, default_value_t = 60.0)]
+    minutes: f64,
+    /// Minutes per window.
+    #[arg(long, default_value_t = 5.0)]
+    window: f64,
+    /// Decode the recording on the pipeline's path instead of preloading it.
+    #[arg(long)]
+    decode: bool,
+    /// Also write the windows as CSV (one row per window and stage) to this file.
+    #[arg(long)]
+    csv: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -676,6 +699,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(BenchCommand::Render(args))) => bench_render(&args),
         Some(Command::Bench(BenchCommand::Cluster(args))) => bench_cluster(&args),
         Some(Command::Bench(BenchCommand::Decode(args))) => bench_decode(&args),
+        Some(Command::Bench(BenchCommand::Soak(args))) => bench_soak(&args),
         Some(Command::Bench(BenchCommand::Ipc(args))) => bench_ipc(&args),
         Some(Command::Bench(BenchCommand::IpcReceiver(args))) => {
             crate::bench::stream::ipc_receiver(&args.services, args.samples)
@@ -823,6 +847,72 @@ fn bench_pipeline(args: &BenchPipelineArgs) -> Result<()> {
             with.latency_p50_ms / without.latency_p50_ms.max(1e-9),
             with.latency_p99_ms / without.latency_p99_ms.max(1e-9)
         );
+    }
+    Ok(())
+}
+
+fn bench_soak(args: &BenchSoakArgs) -> Result<()> {
+    use std::io::Write;
+    let rec = match &args.recording {
+        Some(r) => r.clone(),
+        None => demo_recording()?,
+    };
+    let mut csv = match &args.csv {
+        Some(path) => {
+            let mut file = std::fs::File::create(path).with_context(|| format!("creating `{}`", path.display()))?;
+            writeln!(file, "minute,samples_per_s,dropped,latency_p50_ms,latency_p99_ms,stage,rss_mib,fds")?;
+            Some((path.clone(), file))
+        }
+        None => None,
+    };
+    let mut csv_error = None;
+    out!("soak: the live pipeline on `{}` for {} min, windows of {} min", rec.display(), args.minutes, args.window);
+    let windows = crate::bench::soak::soak(&rec, args.minutes, args.window, !args.decode, |w| {
+        let stages: Vec<String> =
+            w.stages.iter().map(|s| format!("{} {:.1} MiB {} fds", s.stage, s.rss_mib, s.fds)).collect();
+        // Standard output closed: the CSV and the summary still count.
+        let _ = writeln!(
+            std::io::stdout(),
+            "{:6.1} min: {:.2} samples/s, {} dropped, latency p50 {:.0} ms p99 {:.0} ms | {}",
+            w.minute,
+            w.samples_per_s,
+            w.dropped,
+            w.latency_p50_ms,
+            w.latency_p99_ms,
+            stages.join(", ")
+        );
+        if let Some((path, file)) = csv.as_mut() {
+            for s in &w.stages {
+                let row = writeln!(
+                    file,
+                    "{:.2},{:.3},{},{:.1},{:.1},{},{:.2},{}",
+                    w.minute, w.samples_per_s, w.dropped, w.latency_p50_ms, w.latency_p99_ms, s.stage, s.rss_mib, s.fds
+                )
+                .and_then(|()| file.flush());
+                if let Err(e) = row {
+                    csv_error.get_or_insert(format!("writing `{}`: {e}", path.display()));
+                }
+            }
+        }
+    })?;
+    if let Some(e) = csv_error {
+        anyhow::bail!(e);
+    }
+    // Growth: the last window against the first, per stage.
+    if let (Some(first), Some(last)) = (windows.first(), windows.last()) {
+        for s in &first.stages {
+            if let Some(l) = last.stages.iter().find(|l| l.stage == s.stage) {
+                out!(
+                    "{}: memory {:.1} -> {:.1} MiB ({:+.1} %), descriptors {} -> {}",
+                    s.stage,
+                    s.rss_mib,
+                    l.rss_mib,
+                    (l.rss_mib / s.rss_mib - 1.0) * 100.0,
+                    s.fds,
+                    l.fds
+                );
+            }
+        }
     }
     Ok(())
 }

@@ -23,7 +23,7 @@ use iceoryx2::service::port_factory::PortFactory as _;
 use thiserror::Error;
 
 use crate::messages::{
-    CameraStatusSet, ClusterSet, FrameHeader, ParticleHeader, RigHeader, ScenePoint, TrajectorySample,
+    CameraStatusSet, ClusterSet, FrameHeader, ParticleHeader, RigHeader, ScenePoint, StreamProgress, TrajectorySample,
 };
 
 /// The transport: processes on one machine.
@@ -170,6 +170,12 @@ impl ServiceNames {
     pub fn trajectories(&self) -> String {
         self.full("trajectories")
     }
+
+    /// How far stage `stage` (`ingest` or `publish`) has got, kept by the launcher for
+    /// the stage it restarts.
+    pub fn progress(&self, stage: &str) -> String {
+        self.full(&format!("progress/{stage}"))
+    }
 }
 
 fn service_name(name: &str) -> Result<ServiceName, IpcError> {
@@ -181,10 +187,78 @@ fn service_name(name: &str) -> Result<ServiceName, IpcError> {
 pub fn create_node(stage: &str) -> Result<Node<Ipc>, IpcError> {
     set_log_level_from_env_or(LogLevel::Error);
     let name = NodeName::new(stage).map_err(|e| IpcError::new(stage, format!("not a valid node name: {e:?}")))?;
+    let namespace = UserNamespace::of_this_process().map_err(|e| IpcError::new(stage, e))?;
+    namespace.check_owner().map_err(|e| IpcError::new(stage, e))?;
+    let config = namespace.config().map_err(|e| IpcError::new(stage, e))?;
     NodeBuilder::new()
         .name(&name)
+        .config(&config)
         .create::<Ipc>()
-        .map_err(|e| IpcError::new(stage, format!("creating the node: {e:?}")))
+        .map_err(|e| IpcError::new(stage, format!("creating the node in `{}`: {e:?}", namespace.root_dir())))
+}
+
+/// Where a user's iceoryx2 files live. iceoryx2's defaults put every user's in one
+/// directory, which its first user creates readable by them alone (a second user cannot
+/// even create a node), and name shared memory without the user (two users' services
+/// of the same name would collide in `/dev/shm` whatever the directory). So every handflow
+/// process, and subscribers in other languages (`examples/sign_recogniser.py` does the
+/// same), use a directory and a file prefix of the user's own: `/tmp/handflow-iox2-<uid>/`
+/// and `hf<uid>_`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct UserNamespace {
+    uid: u32,
+}
+
+impl UserNamespace {
+    /// The namespace of user `uid`.
+    pub fn new(uid: u32) -> Self {
+        Self { uid }
+    }
+
+    /// The namespace of the user running this process (its effective user, the owner of
+    /// `/proc/self`).
+    pub fn of_this_process() -> Result<Self, String> {
+        use std::os::unix::fs::MetadataExt;
+        std::fs::metadata("/proc/self")
+            .map(|m| Self::new(m.uid()))
+            .map_err(|e| format!("cannot tell which user this process runs as (`/proc/self`: {e})"))
+    }
+
+    /// The directory of iceoryx2's service and node files.
+    pub fn root_dir(&self) -> String {
+        format!("/tmp/handflow-iox2-{}/", self.uid)
+    }
+
+    /// The prefix of every file name, shared memory included.
+    pub fn file_prefix(&self) -> String {
+        format!("hf{}_", self.uid)
+    }
+
+    /// Refuses a directory that exists but belongs to another user: someone else could
+    /// then read or replace this user's services.
+    pub fn check_owner(&self) -> Result<(), String> {
+        use std::os::unix::fs::MetadataExt;
+        match std::fs::symlink_metadata(self.root_dir()) {
+            Ok(m) if m.uid() != self.uid || !m.is_dir() => Err(format!(
+                "`{}` is not a directory of user {} (owner {}); remove it, it is not handflow's",
+                self.root_dir(),
+                self.uid,
+                m.uid()
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    /// iceoryx2's settings (its global configuration, if the user has one) with this
+    /// namespace's directory and prefix.
+    pub fn config(&self) -> Result<iceoryx2::config::Config, String> {
+        let mut config = iceoryx2::config::Config::global_config().clone();
+        let root = Path::new(self.root_dir().as_bytes()).map_err(|e| format!("`{}`: {e:?}", self.root_dir()))?;
+        config.global.set_root_path(&root);
+        config.global.prefix =
+            FileName::new(self.file_prefix().as_bytes()).map_err(|e| format!("`{}`: {e:?}", self.file_prefix()))?;
+        Ok(config)
+    }
 }
 
 /// The node of a stage process: created, then what dead processes left in shared memory
@@ -347,6 +421,8 @@ const PARTICLES: Settings = Settings { max_subscribers: 4, buffer: 4, live_buffe
 const CLUSTERS: Settings = Settings { max_subscribers: 8, buffer: 16, live_buffer: 1, borrowed: 2, history: 0 };
 /// Trajectory samples: any number of recognisers and viewers.
 const TRAJECTORIES: Settings = Settings { max_subscribers: 32, buffer: 64, live_buffer: 8, borrowed: 4, history: 0 };
+/// A stage's progress: only the newest matters.
+const PROGRESS: Settings = Settings { max_subscribers: 2, buffer: 1, live_buffer: 1, borrowed: 1, history: 1 };
 
 macro_rules! open_service {
     ($node:expr, $name:expr, $payload:ty, $header:ty, $settings:expr, $safe_overflow:expr) => {{
@@ -467,6 +543,38 @@ pub fn frames_output(
         .allocation_strategy(AllocationStrategy::PowerOfTwo)
         .create();
     output(node, name, service, publisher)
+}
+
+/// Publisher of stage `stage`'s progress (never waits: the newest overwrites).
+pub fn progress_output(
+    node: &Node<Ipc>,
+    names: &ServiceNames,
+    stage: &str,
+) -> Result<Output<StreamProgress, ()>, IpcError> {
+    let name = names.progress(stage);
+    let service = open_service!(node, &name, StreamProgress, (), PROGRESS, true);
+    let publisher = service.publisher_builder().backpressure_strategy(BackpressureStrategy::DiscardData).create();
+    output(node, name, service, publisher)
+}
+
+/// Subscriber of stage `stage`'s progress; the newest sample is the one that counts.
+pub fn progress_input(
+    node: &Node<Ipc>,
+    names: &ServiceNames,
+    stage: &str,
+) -> Result<Input<StreamProgress, ()>, IpcError> {
+    let name = names.progress(stage);
+    let service = open_service!(node, &name, StreamProgress, (), PROGRESS, true);
+    input(node, name, &service, PROGRESS.buffer)
+}
+
+impl Output<StreamProgress, ()> {
+    /// Publishes `progress`; a failure is logged, never fatal (only a restart would miss it).
+    pub fn report(&self, progress: StreamProgress) {
+        if let Err(error) = self.publisher.send_copy(progress) {
+            tracing::warn!("cannot publish progress on `{}`: {error:?}", self.name);
+        }
+    }
 }
 
 /// Subscriber of frame sets.

@@ -527,6 +527,19 @@ pub struct TrajectoryObject {
     pub reserved: u32,
 }
 
+/// How far a stage has got in the stream, kept by the launcher so that a stage it restarts
+/// goes on from there: ingest's next frame set to publish; the publisher's next sequence
+/// expected and the frames it has counted lost.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("HandflowStreamProgress")]
+pub struct StreamProgress {
+    /// The next sequence.
+    pub next: u64,
+    /// Frames lost so far (the publisher's count; 0 from ingest).
+    pub lost: u64,
+}
+
 /// What subscribers (recognisers, viewers) receive: every object's estimate at one frame.
 #[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]

@@ -3,4 +3,5 @@
 pub mod cluster;
 pub mod decode;
 pub mod hop;
+pub mod soak;
 pub mod stream;

@@ -21,7 +21,7 @@ use serde::Serialize;
 use crate::commands::launcher::{run_pipeline, stage_dir, Pipeline};
 
 /// Percentile `p` (0..1) of `values` (sorted in place).
-fn percentile(values: &mut [f64], p: f64) -> f64 {
+pub(crate) fn percentile(values: &mut [f64], p: f64) -> f64 {
     values.sort_by(f64::total_cmp);
     values.get(((values.len() as f64 - 1.0) * p).round().max(0.0) as usize).copied().unwrap_or(f64::NAN)
 }

@@ -24,7 +24,7 @@
 //! # up = [0.0, 0.0, 1.0]           # the world's up, instead of the calibration's or the estimate
 //! services = "handflow"            # prefix of the iceoryx2 service names
 //! variant = "handflow"             # or "paper"
-//! max_restarts = 5                 # per stage, before the run gives up
+//! max_restarts = 5                 # per stage within a minute, before the run gives up
 //!
 //! [viewer]                         # the live viewer page, served by the publisher
 //! enabled = true                   # default on
@@ -46,6 +46,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use handflow_protocol::ipc::{self, Mode};
+use handflow_protocol::messages::StreamProgress;
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
 use serde::Deserialize;
@@ -278,9 +279,29 @@ struct Stage {
     args: Vec<String>,
     child: Option<Child>,
     restarts: u32,
+    /// When the restarts of the last [`RESTART_WINDOW`] happened.
+    recent_restarts: std::collections::VecDeque<Instant>,
+}
+
+/// The progress services the launcher follows.
+struct Progress {
+    ingest: ipc::Input<StreamProgress, ()>,
+    publish: ipc::Input<StreamProgress, ()>,
 }
 
 impl Stage {
+    /// Sets option `flag` to `value` for the next start.
+    fn set_arg(&mut self, flag: &str, value: String) {
+        if let Some(i) = self.args.iter().position(|a| a == flag) {
+            self.args.drain(i..=i + 1);
+        }
+        self.args.extend([flag.to_string(), value]);
+    }
+
+    fn new(name: &'static str, program: PathBuf, args: Vec<String>) -> Self {
+        Self { name, program, args, child: None, restarts: 0, recent_restarts: Default::default() }
+    }
+
     fn start(&mut self) -> Result<()> {
         let child = Command::new(&self.program)
             .args(&self.args)
@@ -375,10 +396,6 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     if let Some([x, y, z]) = p.up {
         ingest_args.push(format!("--up={x},{y},{z}"));
     }
-    // Where a restarted ingest finds the stream's position (this run's own file).
-    let resume_file = std::env::temp_dir().join(format!("handflow-{}-{}.position", p.services, std::process::id()));
-    let _ = std::fs::remove_file(&resume_file);
-    ingest_args.extend(["--resume-file".into(), resume_file.display().to_string()]);
     let mut publish_args = Vec::new();
     if let Some(out) = &p.out {
         publish_args.extend(["--out".into(), out.display().to_string()]);
@@ -422,57 +439,30 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     }
     // Downstream first, so each stage finds its subscriber waiting.
     let mut stages = vec![
-        Stage {
-            name: "publish",
-            program: stage_binary(&dir, "handflow-publish")?,
-            args: common(publish_args),
-            child: None,
-            restarts: 0,
-        },
-        Stage {
-            name: "cluster",
-            program: stage_binary(&dir, "handflow-cluster")?,
-            args: common(Vec::new()),
-            child: None,
-            restarts: 0,
-        },
-        Stage {
-            name: "flow",
-            program: stage_binary(&dir, "handflow-flow")?,
-            args: common(vec!["--variant".into(), p.variant.clone()]),
-            child: None,
-            restarts: 0,
-        },
-        Stage {
-            name: "ingest",
-            program: stage_binary(&dir, "handflow-ingest")?,
-            args: common(ingest_args),
-            child: None,
-            restarts: 0,
-        },
+        Stage::new("publish", stage_binary(&dir, "handflow-publish")?, common(publish_args)),
+        Stage::new("cluster", stage_binary(&dir, "handflow-cluster")?, common(Vec::new())),
+        Stage::new("flow", stage_binary(&dir, "handflow-flow")?, common(vec!["--variant".into(), p.variant.clone()])),
+        Stage::new("ingest", stage_binary(&dir, "handflow-ingest")?, common(ingest_args)),
     ];
     if let Some(args) = bridge_args {
         // First, so it subscribes before anything is published.
-        stages.insert(
-            0,
-            Stage {
-                name: BRIDGE,
-                program: stage_binary(&dir, "handflow-bridge")?,
-                args: common(args),
-                child: None,
-                restarts: 0,
-            },
-        );
+        stages.insert(0, Stage::new(BRIDGE, stage_binary(&dir, "handflow-bridge")?, common(args)));
     }
     let node = ipc::create_node("handflow-run")?;
     let cleaned = ipc::cleanup_dead_nodes(&node);
     if cleaned > 0 {
         tracing::info!("cleaned up {cleaned} dead node(s) of an earlier run");
     }
+    let names = ipc::ServiceNames::new(&p.services);
+    refuse_a_running_pipeline(&node, &names)?;
+    // How far ingest and the publisher have got, for a stage that has to be restarted.
+    let progress = Progress {
+        ingest: ipc::progress_input(&node, &names, "ingest")?,
+        publish: ipc::progress_input(&node, &names, "publish")?,
+    };
     let started = Instant::now();
-    let outcome = supervise(&node, &mut stages, p);
+    let outcome = supervise(&node, &mut stages, p, &progress);
     stop_all(&mut stages, matches!(outcome, Ok(true)));
-    let _ = std::fs::remove_file(&resume_file);
     let completed = outcome?;
     Ok(RunReport {
         restarts: stages.iter().map(|s| (s.name.to_string(), s.restarts)).collect(),
@@ -483,15 +473,36 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
 
 /// Starts the stages and watches them; `Ok(true)` when the stream ended, `Ok(false)` when
 /// interrupted.
-fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline) -> Result<bool> {
+/// Two pipelines under one prefix would mix their streams: the second is refused.
+fn refuse_a_running_pipeline(node: &ipc::IpcNode, names: &ipc::ServiceNames) -> Result<()> {
+    let running: Vec<&str> = ipc::stage_health(node, names).into_iter().filter(|(_, up)| *up).map(|(s, _)| s).collect();
+    if !running.is_empty() {
+        bail!(
+            "a pipeline is already running under the services prefix `{}` (its {} up); stop it, or give this one \
+             its own prefix with `--services NAME` (or `services = \"NAME\"` in the pipeline file)",
+            names.prefix(),
+            running.join(", ")
+        );
+    }
+    Ok(())
+}
+
+fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline, progress: &Progress) -> Result<bool> {
     for stage in stages.iter_mut() {
         stage.start()?;
     }
+    let (mut ingest, mut publish) = (None::<StreamProgress>, None::<StreamProgress>);
     loop {
         // Wakes on SIGINT/SIGTERM as well as every 20 ms.
         if node.wait(Duration::from_millis(20)).is_err() {
             tracing::info!("interrupted: stopping every stage");
             return Ok(false);
+        }
+        while let Ok(Some(sample)) = progress.ingest.subscriber.receive() {
+            ingest = Some(*sample.payload());
+        }
+        while let Ok(Some(sample)) = progress.publish.subscriber.receive() {
+            publish = Some(*sample.payload());
         }
         for stage in stages.iter_mut() {
             let Some(child) = stage.child.as_mut() else { continue };
@@ -504,7 +515,7 @@ fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline) -> Result<
             if stage.name == BRIDGE && p.ends() && status.success() {
                 continue;
             }
-            if stage.name == BRIDGE && stage.restarts >= p.max_restarts {
+            if stage.name == BRIDGE && stage.recent_restarts.len() as u32 >= p.max_restarts {
                 // The network is an extra: the local pipeline goes on without it.
                 tracing::error!(
                     "the Zenoh bridge ended ({status}) after {} restarts: going on without it",
@@ -512,22 +523,43 @@ fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline) -> Result<
                 );
                 continue;
             }
+            // Where the stream was, not its first frame set again; the publisher appends
+            // to its file and goes on counting losses from where it was.
+            match (stage.name, ingest, publish) {
+                ("ingest", Some(at), _) => stage.set_arg("--resume-at", at.next.to_string()),
+                ("publish", _, Some(at)) => stage.set_arg("--resume", format!("{},{}", at.next, at.lost)),
+                _ => {}
+            }
             restart(node, stage, status, p.max_restarts)?;
         }
     }
 }
 
+/// The window in which a stage may be restarted `max_restarts` times: a service that runs
+/// for weeks survives a rare crash, a stage that crashes at once on every start does not loop.
+const RESTART_WINDOW: Duration = Duration::from_secs(60);
+
 fn restart(node: &ipc::IpcNode, stage: &mut Stage, status: ExitStatus, max_restarts: u32) -> Result<()> {
-    if stage.restarts >= max_restarts {
-        bail!("stage {} ended ({status}) after {} restarts: giving up", stage.name, stage.restarts);
+    let now = Instant::now();
+    while stage.recent_restarts.front().is_some_and(|t| now.duration_since(*t) > RESTART_WINDOW) {
+        stage.recent_restarts.pop_front();
+    }
+    if stage.recent_restarts.len() as u32 >= max_restarts {
+        bail!(
+            "stage {} ended ({status}) after {} restarts within {} s: giving up",
+            stage.name,
+            stage.recent_restarts.len(),
+            RESTART_WINDOW.as_secs()
+        );
     }
     stage.restarts += 1;
+    stage.recent_restarts.push_back(now);
     // What the dead process held in shared memory would block a lossless publisher.
     let cleaned = ipc::cleanup_dead_nodes(node);
     tracing::warn!(
-        "stage {} ended ({status}); cleaned {cleaned} dead node(s), restarting it ({} of at most {max_restarts})",
+        "stage {} ended ({status}); cleaned {cleaned} dead node(s), restarting it ({} in the last minute, at most {max_restarts})",
         stage.name,
-        stage.restarts
+        stage.recent_restarts.len()
     );
     stage.start()
 }

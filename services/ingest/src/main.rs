@@ -15,8 +15,8 @@ use handflow_ingest::synthetic::{Renderer, SceneSpec};
 use handflow_ingest::{OpenOptions, Recording};
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
 use handflow_protocol::messages::{
-    camera_state, CameraStatusSet, FrameHeader, RigHeader, END_OF_STREAM, MAX_STATUS_CAMERAS, PIXEL_FORMAT_RGB8,
-    PROTOCOL_VERSION,
+    camera_state, CameraStatusSet, FrameHeader, RigHeader, StreamProgress, END_OF_STREAM, MAX_STATUS_CAMERAS,
+    PIXEL_FORMAT_RGB8, PROTOCOL_VERSION,
 };
 use handflow_protocol::Rig;
 
@@ -69,10 +69,10 @@ struct Args {
     /// or the estimate from the cameras).
     #[arg(long, value_delimiter = ',', num_args = 3, allow_negative_numbers = true)]
     up: Option<Vec<f64>>,
-    /// A file where the position of the stream is kept after each frame set, so that an
-    /// ingest restarted by the launcher resumes where the stream was instead of at frame 0.
+    /// The frame set to start at: the launcher restarts a dead ingest where the stream was
+    /// (the progress ingest publishes on `<services>/progress/ingest` after each frame set).
     #[arg(long)]
-    resume_file: Option<PathBuf>,
+    resume_at: Option<u64>,
     /// Prefix of the service names.
     #[arg(long, default_value = ipc::DEFAULT_PREFIX)]
     services: String,
@@ -218,7 +218,8 @@ fn run(args: Args) -> Result<()> {
         if pace == Pace::Max { "maximum" } else { "recorded" },
     );
     let interval = Duration::from_secs_f64(1.0 / source.frame_rate());
-    let resume_from = args.resume_file.as_deref().and_then(read_position).filter(|&p| p > 0 && p < total);
+    let progress = ipc::progress_output(&node, &names, "ingest")?;
+    let resume_from = args.resume_at.filter(|&p| p > 0 && p < total);
     if let Some(position) = resume_from {
         tracing::info!("resuming the stream at frame set {position} (restarted)");
     }
@@ -253,7 +254,7 @@ fn run(args: Args) -> Result<()> {
             .with_context(|| format!("frame set {sequence}"))?;
         let Some((frame, timestamp_s)) = filled else {
             // Never sent: the publisher sees the gap in sequence numbers and counts it.
-            save_position(args.resume_file.as_deref(), sequence + 1);
+            progress.report(StreamProgress { next: sequence + 1, lost: 0 });
             continue;
         };
         *sample.user_header_mut() = FrameHeader {
@@ -273,7 +274,7 @@ fn run(args: Args) -> Result<()> {
         };
         sample.send().with_context(|| format!("sending frame set {sequence}"))?;
         frames.notify()?;
-        save_position(args.resume_file.as_deref(), sequence + 1);
+        progress.report(StreamProgress { next: sequence + 1, lost: 0 });
         if sequence % 30 == 0 {
             tracing::debug!("frame set {sequence} sent");
         }
@@ -667,20 +668,4 @@ fn publish_rig(
     sample.send().context("sending the rig")?;
     out.notify()?;
     Ok(out)
-}
-
-/// The stream position a previous ingest of this run left, if any.
-fn read_position(path: &std::path::Path) -> Option<u64> {
-    std::fs::read_to_string(path).ok()?.trim().parse().ok()
-}
-
-/// Keeps the position of the stream (the next sequence to publish) for a restarted ingest.
-/// Written to a temporary file and renamed, so a kill never leaves half a number.
-fn save_position(path: Option<&std::path::Path>, next: u64) {
-    let Some(path) = path else { return };
-    let temporary = path.with_extension("tmp");
-    let saved = std::fs::write(&temporary, next.to_string()).and_then(|()| std::fs::rename(&temporary, path));
-    if let Err(error) = saved {
-        tracing::warn!("cannot keep the stream position in `{}`: {error}", path.display());
-    }
 }

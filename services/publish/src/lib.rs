@@ -5,11 +5,13 @@
 //! [`JsonLinesSink`] writes them, [`trajectory_sample`] turns a frame's labelled clusters
 //! into the sample subscribers receive, and [`SequenceGaps`] counts the frames lost
 //! upstream from the gaps in the ingest sequence. [`viewer`] serves the live viewer page;
-//! [`drawing`] draws trajectories on camera images.
+//! [`drawing`] draws trajectories on camera images; [`file`] keeps the JSON Lines file whole
+//! through restarts and a full disk.
 
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
 pub mod drawing;
+pub mod file;
 pub mod viewer;
 
 use std::collections::BTreeMap;
@@ -96,6 +98,18 @@ impl Default for SequenceGaps {
 }
 
 impl SequenceGaps {
+    /// Counting that goes on where a previous publisher left it: `next` expected, `lost`
+    /// frames counted so far (a restarted publisher neither counts the frames published
+    /// before it as lost nor forgets the earlier losses).
+    pub fn continuing(next: u64, lost: u64) -> Self {
+        Self { next: Some(next), lost }
+    }
+
+    /// The next sequence expected.
+    pub fn next(&self) -> u64 {
+        self.next.unwrap_or(1)
+    }
+
     /// Notes sequence `sequence` arriving; returns the sequences lost just before it.
     pub fn arrive(&mut self, sequence: u64) -> std::ops::Range<u64> {
         let gap = match self.next {
@@ -125,11 +139,18 @@ impl<W: Write> JsonLinesSink<W> {
         Self { out }
     }
 
-    /// Appends one record.
+    /// Appends one record, as one write of the whole line: a process killed meanwhile
+    /// leaves the line whole or absent.
     pub fn write(&mut self, record: &TrajectoryRecord) -> std::io::Result<()> {
-        serde_json::to_writer(&mut self.out, record)?;
-        self.out.write_all(b"\n")?;
+        let mut line = serde_json::to_vec(record)?;
+        line.push(b'\n');
+        self.out.write_all(&line)?;
         self.out.flush()
+    }
+
+    /// The underlying writer, borrowed.
+    pub fn get_ref(&self) -> &W {
+        &self.out
     }
 
     /// The underlying writer.

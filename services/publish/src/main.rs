@@ -1,16 +1,16 @@
 //! `handflow-publish`: the trajectory-publisher stage. Labelled clusters in; trajectory
 //! samples out on shared memory for any number of subscribers, and as a JSON Lines file.
 
-use std::fs::File;
-use std::io::BufWriter;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Parser;
 use handflow_protocol::ipc::{self, Mode, Next, ServiceNames};
+use handflow_protocol::messages::StreamProgress;
+use handflow_publish::file::TrajectoryFile;
 use handflow_publish::viewer::{Viewer, ViewerOptions};
-use handflow_publish::{trajectory_sample, JsonLinesSink, SequenceGaps, TrajectoryRecord};
+use handflow_publish::{trajectory_sample, SequenceGaps, TrajectoryRecord};
 
 #[derive(Parser, Debug)]
 #[command(name = "handflow-publish", about = "Trajectory samples for subscribers and a JSON Lines file")]
@@ -38,6 +38,17 @@ struct Args {
     /// Thumbnails per second per camera in the viewer (0: none).
     #[arg(long, default_value_t = 2.0)]
     thumbnail_hz: f64,
+    /// Go on where a previous publisher of this stream stopped (the launcher restarting
+    /// it): the next sequence it expected and the frames it had counted lost, as
+    /// `NEXT,LOST`. The file is then appended to, not emptied.
+    #[arg(long, value_parser = parse_resume)]
+    resume: Option<(u64, u64)>,
+}
+
+/// `NEXT,LOST` of `--resume`.
+fn parse_resume(text: &str) -> Result<(u64, u64), String> {
+    let (next, lost) = text.split_once(',').ok_or("expected NEXT,LOST")?;
+    Ok((next.parse().map_err(|e| format!("NEXT: {e}"))?, lost.parse().map_err(|e| format!("LOST: {e}"))?))
 }
 
 /// How long the publisher waits for the subscribers it was told to expect.
@@ -65,16 +76,12 @@ fn run(args: Args) -> Result<()> {
     let node = ipc::stage_node("handflow-publish")?;
     let clusters = ipc::clusters_input(&node, &names, args.mode)?;
     let trajectories = ipc::trajectories_output(&node, &names, args.mode)?;
+    let resume = args.resume;
     let mut sink = match &args.out {
-        Some(path) => {
-            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir).with_context(|| format!("creating `{}`", dir.display()))?;
-            }
-            let file = File::create(path).with_context(|| format!("creating `{}`", path.display()))?;
-            Some(JsonLinesSink::new(BufWriter::new(file)))
-        }
+        Some(path) => Some(TrajectoryFile::open(path, resume.is_some()).map_err(anyhow::Error::msg)?),
         None => None,
     };
+    let progress = ipc::progress_output(&node, &names, "publish")?;
     // The viewer is a window on the stream: if its address is taken, the stream goes on.
     let viewer = args.viewer.and_then(|address| {
         let options = ViewerOptions {
@@ -111,7 +118,13 @@ fn run(args: Args) -> Result<()> {
             trajectories.name()
         );
     }
-    let mut gaps = SequenceGaps::default();
+    let mut gaps = match resume {
+        Some((next, lost)) => {
+            tracing::info!("going on from sequence {next} ({lost} frames lost before; restarted)");
+            SequenceGaps::continuing(next, lost)
+        }
+        None => SequenceGaps::default(),
+    };
     let mut published = 0u64;
     let mut latencies = Latencies::default();
     ipc::serve(&clusters, Duration::from_millis(100), |sample| -> Result<Next> {
@@ -163,8 +176,11 @@ fn run(args: Args) -> Result<()> {
             latencies.0.push(now.saturating_sub(set.capture_unix_ns) as f64 * 1e-9);
         }
         if let Some(sink) = sink.as_mut() {
-            sink.write(&record).context("writing the trajectory file")?;
+            sink.write(&record);
         }
+        // After the record is out: a publisher killed in between makes its successor report
+        // this frame lost as well, never leave a frame neither written nor reported.
+        progress.report(StreamProgress { next: gaps.next(), lost: gaps.lost() });
         Ok(Next::Continue)
     })?;
     // Keep the last samples readable until subscribers have had them.
