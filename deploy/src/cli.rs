@@ -401,6 +401,28 @@ enum BenchCommand {
     /// The live pipeline on a looped recording for a long time: each stage's memory and file
     /// descriptors, rate and latency, window by window.
     Soak(BenchSoakArgs),
+    /// Malformed samples on a running pipeline's service (for the fault campaign).
+    #[command(hide = true)]
+    Inject(BenchInjectArgs),
+}
+
+#[derive(Args, Debug)]
+struct BenchInjectArgs {
+    /// Prefix of the pipeline's service names.
+    #[arg(long)]
+    services: String,
+    /// `frames`, `particles`, `clusters` or `trajectories`.
+    #[arg(long)]
+    service: String,
+    /// The pipeline's mode (the service's settings follow it).
+    #[arg(long, default_value = "replay")]
+    mode: handflow_protocol::ipc::Mode,
+    /// Malformed samples sent.
+    #[arg(long, default_value_t = 5)]
+    count: u32,
+    /// Seed of the malformations.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
 }
 
 #[derive(Args, Debug)]
@@ -700,6 +722,9 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(BenchCommand::Cluster(args))) => bench_cluster(&args),
         Some(Command::Bench(BenchCommand::Decode(args))) => bench_decode(&args),
         Some(Command::Bench(BenchCommand::Soak(args))) => bench_soak(&args),
+        Some(Command::Bench(BenchCommand::Inject(args))) => {
+            crate::bench::inject::inject(&args.services, &args.service, args.mode, args.count, args.seed)
+        }
         Some(Command::Bench(BenchCommand::Ipc(args))) => bench_ipc(&args),
         Some(Command::Bench(BenchCommand::IpcReceiver(args))) => {
             crate::bench::stream::ipc_receiver(&args.services, args.samples)

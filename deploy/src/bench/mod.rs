@@ -3,5 +3,6 @@
 pub mod cluster;
 pub mod decode;
 pub mod hop;
+pub mod inject;
 pub mod soak;
 pub mod stream;
