@@ -600,3 +600,20 @@ fn killing_the_publisher_keeps_its_file_and_its_count_of_losses() {
     assert_eq!(last.dropped_frames, missing.len() as u64, "the running count spans the restart");
     eprintln!("publisher killed and restarted; frames lost: {missing:?}");
 }
+
+#[test]
+fn a_stage_that_fails_at_start_on_bad_input_ends_the_run_instead_of_restarting_forever() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let rec_dir = render_preset(dir.path(), "signer-3cam", 4, Some((160, 120)));
+    std::fs::write(rec_dir.join("rig.toml"), "[[cameras]]\nname = 3\n").unwrap();
+    let prefix = unique_prefix("fails-at-start");
+    let mut run =
+        launcher(&["--recording", str(&rec_dir), "--services", &prefix, "--out", str(&dir.path().join("t.jsonl"))]);
+    let log = Log::capture(&mut run);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(60));
+    let text = log.text();
+    assert!(!status.success(), "{text}");
+    assert!(text.contains("rig.toml") && text.contains("not restarting it"), "{text}");
+    assert_eq!(text.matches("started ingest").count(), 1, "{text}");
+}

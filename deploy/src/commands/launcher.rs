@@ -281,6 +281,8 @@ struct Stage {
     restarts: u32,
     /// When the restarts of the last [`RESTART_WINDOW`] happened.
     recent_restarts: std::collections::VecDeque<Instant>,
+    /// When the running process was started.
+    started_at: Option<Instant>,
 }
 
 /// The progress services the launcher follows.
@@ -299,7 +301,7 @@ impl Stage {
     }
 
     fn new(name: &'static str, program: PathBuf, args: Vec<String>) -> Self {
-        Self { name, program, args, child: None, restarts: 0, recent_restarts: Default::default() }
+        Self { name, program, args, child: None, restarts: 0, recent_restarts: Default::default(), started_at: None }
     }
 
     fn start(&mut self) -> Result<()> {
@@ -310,6 +312,7 @@ impl Stage {
             .with_context(|| format!("starting `{}`", self.program.display()))?;
         tracing::info!("started {} (pid {})", self.name, child.id());
         self.child = Some(child);
+        self.started_at = Some(Instant::now());
         Ok(())
     }
 
@@ -539,8 +542,22 @@ fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline, progress: 
 /// for weeks survives a rare crash, a stage that crashes at once on every start does not loop.
 const RESTART_WINDOW: Duration = Duration::from_secs(60);
 
+/// A stage that ends with an error status this soon after its start met input it cannot use
+/// (a video it cannot open, a calibration it refuses): starting it again would fail again.
+const FAILED_AT_START: Duration = Duration::from_secs(60);
+
 fn restart(node: &ipc::IpcNode, stage: &mut Stage, status: ExitStatus, max_restarts: u32) -> Result<()> {
     let now = Instant::now();
+    // An error exit (not a signal) is the stage's own verdict, logged above.
+    if status.code().is_some_and(|c| c != 0)
+        && stage.started_at.is_some_and(|t| now.duration_since(t) < FAILED_AT_START)
+    {
+        bail!(
+            "stage {} failed ({status}) {:.1} s after its start: see its error above; not restarting it",
+            stage.name,
+            stage.started_at.map_or(0.0, |t| now.duration_since(t).as_secs_f64())
+        );
+    }
     while stage.recent_restarts.front().is_some_and(|t| now.duration_since(*t) > RESTART_WINDOW) {
         stage.recent_restarts.pop_front();
     }
