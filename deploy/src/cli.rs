@@ -1275,7 +1275,8 @@ fn bench_accuracy(args: &BenchAccuracyArgs) -> Result<()> {
 fn scene_spec(scene: Option<&Path>, preset: Option<&str>) -> Result<SceneSpec> {
     match (scene, preset) {
         (Some(path), _) => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("reading scene `{}`", path.display()))?;
+            let text = handflow_protocol::read_text_capped(path)
+                .with_context(|| format!("reading scene `{}`", path.display()))?;
             let spec: SceneSpec = toml::from_str(&text).with_context(|| format!("scene `{}`", path.display()))?;
             spec.validate().map_err(|e| anyhow::anyhow!("scene `{}`: {e}", path.display()))?;
             Ok(spec)

@@ -168,7 +168,8 @@ impl Default for Pipeline {
 impl Pipeline {
     /// Reads a pipeline file; relative paths in it are relative to the file's folder.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("reading pipeline `{}`", path.display()))?;
+        let text = handflow_protocol::read_text_capped(path)
+            .with_context(|| format!("reading pipeline `{}`", path.display()))?;
         let mut p: Pipeline = toml::from_str(&text).with_context(|| format!("pipeline `{}`", path.display()))?;
         let base = path.parent().unwrap_or(Path::new(""));
         for file in [&mut p.recording, &mut p.out, &mut p.calibration, &mut p.record].into_iter().flatten() {

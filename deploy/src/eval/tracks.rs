@@ -79,7 +79,7 @@ struct Sums {
 
 /// Reads a trajectory file (JSON Lines), naming the line of any error.
 pub fn read_tracks(path: &Path) -> Result<Vec<TrajectoryRecord>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading `{}`", path.display()))?;
+    let text = handflow_protocol::read_text_capped(path).with_context(|| format!("reading `{}`", path.display()))?;
     text.lines()
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty())
@@ -93,7 +93,7 @@ pub fn read_tracks(path: &Path) -> Result<Vec<TrajectoryRecord>> {
 /// Scores `records` against the recording's `truth.json`.
 pub fn evaluate_tracks(rec: &Recording, records: &[TrajectoryRecord]) -> Result<TrackScores> {
     let path = rec.truth_path().with_context(|| format!("recording `{}` has no truth.json", rec.dir().display()))?;
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading `{}`", path.display()))?;
+    let text = handflow_protocol::read_text_capped(path).with_context(|| format!("reading `{}`", path.display()))?;
     let truth: Truth = serde_json::from_str(&text).with_context(|| format!("`{}`", path.display()))?;
     let by_frame: BTreeMap<u64, &TruthFrame> = truth.frames.iter().map(|f| (f.frame, f)).collect();
     let cameras = &rec.rig().cameras;

@@ -124,7 +124,7 @@ impl Rig {
     /// logged as warnings and kept in [`Rig::notes`].
     pub fn load_detected(path: impl AsRef<Path>) -> Result<(Rig, RigFormat), RigError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|error| RigError::Io {
+        let text = crate::read_text_capped(path).map_err(|error| RigError::Io {
             action: "read",
             path: path.to_owned(),
             error,
@@ -200,7 +200,7 @@ impl Rig {
         // Several: acceptable only as OpenCV files of one camera each.
         let formats: Vec<Option<RigFormat>> = candidates
             .iter()
-            .map(|path| std::fs::read_to_string(path).ok().map(|text| RigFormat::sniff(&text)))
+            .map(|path| crate::read_text_capped(path).ok().map(|text| RigFormat::sniff(&text)))
             .collect();
         if !candidates.is_empty() && formats.iter().all(|f| f.is_some_and(RigFormat::is_opencv)) {
             return Ok(candidates);

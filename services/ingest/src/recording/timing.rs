@@ -26,7 +26,7 @@ pub struct SyncedSet {
 /// finite timestamp in seconds, both strictly increasing.
 pub fn read_frame_table(path: &Path) -> Result<Vec<(u64, f64)>, RecordingError> {
     let err = |line: usize, problem: String| RecordingError::Frames { path: path.to_path_buf(), line, problem };
-    let text = std::fs::read_to_string(path).map_err(|e| err(0, format!("cannot be read: {e}")))?;
+    let text = handflow_protocol::read_text_capped(path).map_err(|e| err(0, format!("cannot be read: {e}")))?;
     let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
     match lines.next() {
         Some((_, header)) => {
@@ -90,7 +90,7 @@ type Row = (u64, Option<u64>, f64, usize);
 /// synchroniser does (see `group_by_time`).
 pub fn read_caliscope_timestamps(path: &Path) -> Result<Vec<SyncedSet>, RecordingError> {
     let err = |line: usize, problem: String| RecordingError::Frames { path: path.to_path_buf(), line, problem };
-    let text = std::fs::read_to_string(path).map_err(|e| err(0, format!("cannot be read: {e}")))?;
+    let text = handflow_protocol::read_text_capped(path).map_err(|e| err(0, format!("cannot be read: {e}")))?;
     let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
     let Some((_, header)) = lines.next() else {
         return Err(err(0, "is empty (expected a `sync_index,cam_id,frame_index,frame_time` header)".into()));
