@@ -617,3 +617,32 @@ fn a_stage_that_fails_at_start_on_bad_input_ends_the_run_instead_of_restarting_f
     assert!(text.contains("rig.toml") && text.contains("not restarting it"), "{text}");
     assert_eq!(text.matches("started ingest").count(), 1, "{text}");
 }
+
+#[test]
+fn stages_end_when_their_launcher_is_killed() {
+    let _one = serial();
+    let prefix = unique_prefix("orphans");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("t.jsonl");
+    let mut run =
+        launcher(&["--preset", "signer-3cam", "--mode", "live", "--loop", "--services", &prefix, "--out", str(&out)]);
+    let _log = Log::capture(&mut run);
+    let started = Instant::now();
+    while lines_in(&out) < 3 {
+        assert!(started.elapsed() < Duration::from_secs(120), "the pipeline publishes");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    run.kill().unwrap();
+    run.wait().unwrap();
+    let killed = Instant::now();
+    let stages = || -> Vec<i32> {
+        ["handflow-ingest", "handflow-flow", "handflow-cluster", "handflow-publish"]
+            .iter()
+            .flat_map(|b| pids_of(b, &prefix))
+            .collect()
+    };
+    while !stages().is_empty() {
+        assert!(killed.elapsed() < Duration::from_secs(10), "stages outlived their launcher: {:?}", stages());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}

@@ -48,6 +48,26 @@ pub fn init_logging() {
         .with_ansi(std::io::stderr().is_terminal())
         .with_writer(std::io::stderr)
         .try_init();
+    end_with_launcher();
+}
+
+/// Set by the launcher in each stage's environment: its process id.
+pub const LAUNCHER_PID_ENV: &str = "HANDFLOW_LAUNCHER_PID";
+
+/// A stage started by the launcher ends (SIGTERM, as on Ctrl-C) when the launcher dies,
+/// even by SIGKILL: orphaned stages would otherwise run on, holding shared memory and
+/// cameras, with nobody to stop them.
+pub fn end_with_launcher() {
+    let Some(launcher) = std::env::var(LAUNCHER_PID_ENV).ok().and_then(|v| v.parse::<i32>().ok()) else { return };
+    if let Err(e) = nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGTERM) {
+        tracing::warn!("cannot ask to end with the launcher: {e}");
+        return;
+    }
+    // The launcher may have died before the request was made.
+    if nix::unistd::getppid().as_raw() != launcher {
+        tracing::error!("the launcher (pid {launcher}) is gone: ending");
+        std::process::exit(1);
+    }
 }
 
 /// How the stages deliver messages.

@@ -308,6 +308,7 @@ impl Stage {
     fn start(&mut self) -> Result<()> {
         let child = Command::new(&self.program)
             .args(&self.args)
+            .env(ipc::LAUNCHER_PID_ENV, std::process::id().to_string())
             .stdin(Stdio::null())
             .spawn()
             .with_context(|| format!("starting `{}`", self.program.display()))?;
