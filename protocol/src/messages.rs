@@ -65,6 +65,15 @@ fn check_version(message: &'static str, got: u32) -> Result<(), MessageError> {
     }
 }
 
+/// A frame's time: finite and not negative.
+fn check_time(message: &'static str, sequence: u64, timestamp_s: f64) -> Result<(), MessageError> {
+    if timestamp_s.is_finite() && timestamp_s >= 0.0 {
+        Ok(())
+    } else {
+        Err(field_error(message, sequence, "timestamp_s", format!("{timestamp_s} is not a time")))
+    }
+}
+
 fn field_error(message: &'static str, sequence: u64, field: &'static str, detail: String) -> MessageError {
     MessageError::Field { message, sequence, field, detail }
 }
@@ -502,6 +511,7 @@ impl ClusterSet {
         if self.is_end_of_stream() {
             return Ok(());
         }
+        check_time(KIND, self.sequence, self.timestamp_s)?;
         validate_objects(
             KIND,
             self.sequence,
@@ -584,6 +594,7 @@ impl TrajectorySample {
         if self.is_end_of_stream() {
             return Ok(());
         }
+        check_time(KIND, self.sequence, self.timestamp_s)?;
         validate_objects(
             KIND,
             self.sequence,
@@ -594,6 +605,22 @@ impl TrajectorySample {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn clusters_and_trajectory_samples_of_no_time_are_refused() {
+        let set = super::ClusterSet {
+            protocol_version: super::PROTOCOL_VERSION,
+            timestamp_s: f64::NAN,
+            ..Default::default()
+        };
+        assert!(matches!(set.validate(), Err(super::MessageError::Field { field: "timestamp_s", .. })));
+        let sample = super::TrajectorySample {
+            protocol_version: super::PROTOCOL_VERSION,
+            timestamp_s: f64::INFINITY,
+            ..Default::default()
+        };
+        assert!(matches!(sample.validate(), Err(super::MessageError::Field { field: "timestamp_s", .. })));
+    }
+
     use super::*;
 
     fn frame_header(views: u32, w: u32, h: u32) -> FrameHeader {
