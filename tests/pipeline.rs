@@ -646,3 +646,36 @@ fn stages_end_when_their_launcher_is_killed() {
         std::thread::sleep(Duration::from_millis(50));
     }
 }
+
+#[test]
+fn a_stage_stopped_and_continued_goes_on_without_a_restart() {
+    let _one = serial();
+    let prefix = unique_prefix("sigstop");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("t.jsonl");
+    let mut run =
+        launcher(&["--preset", "signer-3cam", "--mode", "live", "--loop", "--services", &prefix, "--out", str(&out)]);
+    let log = Log::capture(&mut run);
+    let started = Instant::now();
+    while lines_in(&out) < 3 {
+        assert!(started.elapsed() < Duration::from_secs(120), "the pipeline publishes");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    for stage in ["handflow-publish", "handflow-cluster", "handflow-flow"] {
+        let pid = nix::unistd::Pid::from_raw(pids_of(stage, &prefix)[0]);
+        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGSTOP).unwrap();
+        std::thread::sleep(Duration::from_millis(700));
+        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGCONT).unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    let before = lines_in(&out);
+    let resumed = Instant::now();
+    while lines_in(&out) <= before {
+        assert!(resumed.elapsed() < Duration::from_secs(30), "trajectories go on:\n{}", log.text());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(run.id() as i32), nix::sys::signal::Signal::SIGINT);
+    wait_with_timeout(&mut run, Duration::from_secs(30));
+    let text = log.text();
+    assert!(!text.contains("restarting it"), "a stopped stage is not a dead one:\n{text}");
+}

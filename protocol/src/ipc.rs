@@ -20,6 +20,7 @@ use iceoryx2::port::BackpressureAction;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
 use iceoryx2::service::port_factory::PortFactory as _;
+use iceoryx2::waitset::WaitSetRunResult;
 use thiserror::Error;
 
 use crate::messages::{
@@ -791,7 +792,20 @@ pub fn serve<I: Receive, E: From<IpcError>>(
     // Drain once before waiting: a subscriber only connects to its publishers (and only then
     // holds back a lossless one) on a receive, and samples sent before this wake nobody.
     if on_event(WaitSetAttachmentId::from_guard(&_guard)) == CallbackProgression::Continue {
-        waitset.wait_and_process(on_event).map_err(|e| IpcError::new(&name, format!("WaitSet: {e:?}")))?;
+        loop {
+            let outcome =
+                waitset.wait_and_process(&mut on_event).map_err(|e| IpcError::new(&name, format!("WaitSet: {e:?}")))?;
+            match outcome {
+                // Any signal that interrupts the wait, SIGCONT after a SIGSTOP included (epoll
+                // is not restarted after a stop): only SIGINT and SIGTERM end the stage.
+                WaitSetRunResult::Interrupt if !stop_requested() => continue,
+                WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt => {
+                    STOP_REQUESTED.store(true, std::sync::atomic::Ordering::Relaxed);
+                    break;
+                }
+                _ => break,
+            }
+        }
     }
     result
 }
