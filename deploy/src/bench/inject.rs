@@ -6,27 +6,15 @@
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
+use handflow_flow::rng::RayRng;
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
 use handflow_protocol::messages::{
     ClusterSet, FrameHeader, ParticleHeader, ScenePoint, TrajectorySample, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION,
 };
 
-/// A small deterministic generator (the campaign's seed picks the malformations).
-struct Draw(u64);
-
-impl Draw {
-    fn next(&mut self) -> u64 {
-        // SplitMix64.
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n.max(1)
-    }
+/// A deterministic draw below `n` (the campaign's seed picks the malformations).
+fn below(rng: &mut RayRng, n: u64) -> u64 {
+    rng.next_u64() % n.max(1)
 }
 
 /// Sends `count` malformed samples on `service` (`frames`, `particles`, `clusters` or
@@ -34,7 +22,7 @@ impl Draw {
 pub fn inject(prefix: &str, service: &str, mode: Mode, count: u32, seed: u64) -> Result<()> {
     let names = ServiceNames::new(prefix);
     let node = ipc::create_node("handflow-inject")?;
-    let mut draw = Draw(seed);
+    let mut draw = RayRng::for_item(seed, 0, 0, 0);
     match service {
         "frames" => {
             let out = ipc::frames_output(&node, &names, mode, 64)?;
@@ -44,14 +32,14 @@ pub fn inject(prefix: &str, service: &str, mode: Mode, count: u32, seed: u64) ->
                 let mut header = FrameHeader {
                     protocol_version: PROTOCOL_VERSION,
                     pixel_format: PIXEL_FORMAT_RGB8,
-                    sequence: draw.below(1 << 20),
+                    sequence: below(&mut draw, 1 << 20),
                     view_count: 1,
                     width: 4,
                     height: 4,
                     payload_len: len as u64,
                     ..FrameHeader::default()
                 };
-                match draw.below(4) {
+                match below(&mut draw, 4) {
                     0 => header.protocol_version = 0xdead,
                     1 => header.payload_len = 1 << 40,
                     2 => header.view_count = 1 << 20,
@@ -72,12 +60,12 @@ pub fn inject(prefix: &str, service: &str, mode: Mode, count: u32, seed: u64) ->
                 }
                 let mut header = ParticleHeader {
                     protocol_version: PROTOCOL_VERSION,
-                    sequence: draw.below(1 << 20),
+                    sequence: below(&mut draw, 1 << 20),
                     frame_rate_hz: 30.0,
                     point_count: n as u64,
                     ..ParticleHeader::default()
                 };
-                match draw.below(3) {
+                match below(&mut draw, 3) {
                     0 => header.point_count = u64::MAX,
                     1 => header.protocol_version = 0,
                     _ => header.frame_rate_hz = f64::NAN,
@@ -92,10 +80,10 @@ pub fn inject(prefix: &str, service: &str, mode: Mode, count: u32, seed: u64) ->
             for _ in 0..count {
                 let mut set = ClusterSet {
                     protocol_version: PROTOCOL_VERSION,
-                    sequence: draw.below(1 << 20),
+                    sequence: below(&mut draw, 1 << 20),
                     ..ClusterSet::default()
                 };
-                match draw.below(2) {
+                match below(&mut draw, 2) {
                     0 => set.protocol_version = 7,
                     _ => set.timestamp_s = f64::NAN,
                 }
@@ -108,10 +96,10 @@ pub fn inject(prefix: &str, service: &str, mode: Mode, count: u32, seed: u64) ->
             for _ in 0..count {
                 let mut sample = TrajectorySample {
                     protocol_version: PROTOCOL_VERSION,
-                    sequence: draw.below(1 << 20),
+                    sequence: below(&mut draw, 1 << 20),
                     ..TrajectorySample::default()
                 };
-                match draw.below(2) {
+                match below(&mut draw, 2) {
                     0 => sample.protocol_version = 3,
                     _ => sample.timestamp_s = f64::INFINITY,
                 }
