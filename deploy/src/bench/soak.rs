@@ -10,7 +10,7 @@ use anyhow::{Context, Result};
 use handflow_protocol::ipc::{self, Mode, Next, ServiceNames};
 use serde::Serialize;
 
-use super::stream::percentile;
+use super::stream::{looped_live, percentile};
 use crate::commands::launcher::{run_pipeline, Pipeline};
 
 /// One stage process's resources at the end of a window.
@@ -100,16 +100,10 @@ pub fn soak(
     let prefix = format!("bench-soak-{}", std::process::id());
     let names = ServiceNames::new(&prefix);
     let pipeline = Pipeline {
-        mode: "live".into(),
-        recording: Some(recording.to_path_buf()),
-        looped: true,
-        frames: Some(frames),
-        preload,
-        services: prefix.clone(),
         // The publisher writes its file all along, as in service.
         out: Some(SOAK_TRAJECTORIES.into()),
         viewer: crate::commands::launcher::ViewerSettings { enabled: false, ..Default::default() },
-        ..Pipeline::default()
+        ..looped_live(recording, frames, preload, &prefix)
     };
     let node = ipc::create_node("handflow-bench-soak")?;
     let input = ipc::trajectories_input(&node, &names, Mode::Live)?;

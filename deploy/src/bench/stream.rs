@@ -229,6 +229,20 @@ fn read_viewer(
     })
 }
 
+/// The live pipeline on `recording` looped at its recorded rate for `frames` frame sets
+/// (`preload`: decoded into memory first), under service prefix `prefix`.
+pub(crate) fn looped_live(recording: &std::path::Path, frames: u64, preload: bool, prefix: &str) -> Pipeline {
+    Pipeline {
+        mode: "live".into(),
+        recording: Some(recording.to_path_buf()),
+        looped: true,
+        frames: Some(frames),
+        preload,
+        services: prefix.to_string(),
+        ..Pipeline::default()
+    }
+}
+
 /// Seconds after the first trajectory sample that are not measured (face detections that
 /// adapt the skin models, the first frame's extra passes).
 const PIPELINE_WARM_UP_S: f64 = 3.0;
@@ -249,18 +263,12 @@ pub fn bench_pipeline(
     let prefix = format!("bench-pipeline-{}", std::process::id());
     let names = ServiceNames::new(&prefix);
     let pipeline = Pipeline {
-        mode: "live".into(),
-        recording: Some(recording.to_path_buf()),
-        looped: true,
-        frames: Some(frames),
-        preload,
-        services: prefix.clone(),
         viewer: crate::commands::launcher::ViewerSettings {
             enabled: viewer.is_some(),
             listen: viewer.map(|a| a.to_string()).unwrap_or_default(),
             ..Default::default()
         },
-        ..Pipeline::default()
+        ..looped_live(recording, frames, preload, &prefix)
     };
     let stop_reader = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let viewer_reader = viewer.map(|address| read_viewer(address, stop_reader.clone()));
