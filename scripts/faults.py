@@ -13,7 +13,8 @@ Faults: kill-<stage> (SIGKILL), stop-<stage> (SIGSTOP for 0.5 to 5 s, then SIGCO
 ingest, flow, cluster, publish; stall-rust, stall-python, stall-zenoh, stall-websocket (a
 subscriber that stops reading for 0.5 to 5 s); inject-<service> (malformed samples on frames,
 particles, clusters, trajectories); disk-full (the output on a small tmpfs filled, then
-freed); truncated-video and corrupt-frames (a copy of a recording damaged at random).
+freed); truncated-video and corrupt-frames (a copy of a recording damaged at random);
+camera-gone (live cameras served over HTTP by ffmpeg, one killed for 0.5 to 5 s, then back).
 """
 
 import argparse
@@ -465,6 +466,152 @@ def run_scenario(fault, source, mode, trials, rng, workdir):
     return records, summary
 
 
+# ---------------------------------------------------------------- a camera that goes away
+
+
+class NetworkCamera:
+    """A network camera as many are (MJPEG over HTTP), played from a recording's video by
+    ffmpeg at its own rate, looped; killed and started again (at the point it would have
+    reached) to take it off the network and bring it back."""
+
+    def __init__(self, inputs, port, fps, epoch):
+        self.inputs, self.port, self.fps, self.epoch = inputs, port, fps, epoch
+        self.proc = None
+        self.down = False
+        self.start()
+
+    def uri(self):
+        return f"http://127.0.0.1:{self.port}/cam"
+
+    def start(self):
+        offset = (time.monotonic() - self.epoch)
+        self.proc = subprocess.Popen(
+            ["ffmpeg", "-loglevel", "error", "-re", "-stream_loop", "-1", *self.inputs(offset),
+             "-c:v", "mjpeg", "-q:v", "4", "-r", str(self.fps), "-f", "mpjpeg", "-listen", "1", self.uri()],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )
+        self.down = False
+
+    def kill(self):
+        self.down = True
+        self.proc.kill()
+        self.proc.wait()
+
+    def keep_up(self):
+        """ffmpeg serves one client: once that client is gone it exits; listen again."""
+        if not self.down and self.proc.poll() is not None:
+            self.start()
+
+
+def camera_gone_trials(source, mode, trials, rng, workdir):
+    """Live cameras served over HTTP; one at a time killed for 0.5 to 5 s, then back."""
+    prefix = f"faults-camera-gone-{source}-{mode}-{os.getpid()}"
+    out = Path(workdir) / f"{prefix}.jsonl"
+    if source == "real":
+        calibration = REAL / "camera_array.toml"
+        names = [f"cam_{k}" for k in range(4)]
+        fps = 6
+        duration = 111 / fps
+        videos = [REAL / f"cam_{k}.mp4" for k in range(4)]
+        inputs = [lambda off, v=v: ["-ss", f"{off % duration:.3f}", "-i", str(v)] for v in videos]
+    else:
+        calibration = RENDERED / "rig.toml"
+        names = [f"cam{k}" for k in range(3)]
+        fps = 30
+        duration = 150 / fps
+        inputs = [
+            lambda off, k=k: ["-framerate", str(fps), "-start_number", str(int(off % duration * fps)), "-i",
+                              str(RENDERED / f"cam{k}" / "%06d.png")]
+            for k in range(3)
+        ]
+    epoch = time.monotonic()
+    cameras = [NetworkCamera(inputs[k], free_port(), fps, epoch) for k in range(len(names))]
+    stop_keeping = threading.Event()
+
+    def keeper():
+        while not stop_keeping.is_set():
+            for c in cameras:
+                c.keep_up()
+            time.sleep(0.05)
+
+    keeping = threading.Thread(target=keeper, daemon=True)
+    keeping.start()
+    time.sleep(1.0)
+    pipeline = Path(workdir) / f"{prefix}.toml"
+    lines = [f'mode = "{mode}"', f'calibration = "{calibration.resolve()}"', f'out = "{out}"',
+             f'services = "{prefix}"', "max_restarts = 1000", "[viewer]", "enabled = false"]
+    for name, cam in zip(names, cameras):
+        lines += ["[[cameras]]", f'name = "{name}"', f'source = "{cam.uri()}"', f"fps = {fps}"]
+    pipeline.write_text("\n".join(lines) + "\n")
+    before = shm_files()
+    run = Run(pipeline, workdir)
+    follower = Follower(out)
+    records = []
+    try:
+        if not wait_records(follower, 15, 120, run):
+            return [{"fault": "camera-gone", "source": source, "mode": mode, "recovered": False,
+                     "note": "no start:\n" + run.text()[-2000:]}]
+        for trial in range(trials):
+            if not wait_records(follower, 8, 60, run):
+                records.append({"recovered": False, "note": "stream stopped before the trial"})
+                break
+            time.sleep(rng.uniform(0.0, 1.0))
+            k = rng.randrange(len(cameras))
+            pause = rng.uniform(0.5, 5.0)
+            t_fault = time.monotonic()
+            cameras[k].kill()
+            time.sleep(pause)
+            cameras[k].start()
+            t_from = time.monotonic()
+            # Recovered: ingest says the camera is back (it delivers again).
+            needle = f"camera `{names[k]}`: back after"
+            deadline = t_from + 30
+            t_back = None
+            while time.monotonic() < deadline and run.proc.poll() is None:
+                t_back = run.first_log_after(t_fault, needle)
+                if t_back is not None:
+                    break
+                time.sleep(0.01)
+            lost_seen = run.first_log_after(t_fault, f"camera `{names[k]}` lost") is not None
+            records.append({
+                "trial": trial, "t_fault": t_fault, "t_from": t_from, "camera": names[k],
+                "recovered": t_back is not None, "recovery_s": (t_back - t_from) if t_back is not None else None,
+                "pause_s": pause, "loss_noticed": lost_seen,
+                "restarted": run.first_log_after(t_fault, "restarting it") is not None,
+            })
+            log(f"  {names[k]} away {pause:.2f} s: lost noticed {lost_seen}, back "
+                + (f"{t_back - t_from:.2f} s after it returned" if t_back else "NEVER"))
+            # Settles with every camera in its sets before the next trial.
+            wait_records(follower, 2 * fps, 60, run)
+        wait_records(follower, 5, 60, run)
+    finally:
+        run.stop()
+        stop_keeping.set()
+        keeping.join()
+        for c in cameras:
+            c.kill()
+        time.sleep(0.5)
+        follower.close()
+    result = check_output(follower, run)
+    timed = list(zip([t for t, text in follower.lines if text != "<<truncated>>"], result["sequences"]))
+    for r in records:
+        if "t_fault" in r:
+            r["frames_lost"] = lost_between(result, timed, r["t_fault"], r["t_from"] + (r["recovery_s"] or 0))
+            r.update(fault="camera-gone", source=source, mode=mode)
+    summary = {
+        "fault": "camera-gone", "source": source, "mode": mode, "exact": result["exact"],
+        "unreported": sorted(result["missing"] - result["reported"])[:20],
+        "intact": result["invalid_lines"] == 0 and result["frames_twice"] == 0 and not result["file_truncated"],
+        "invalid_lines": result["invalid_lines"], "frames_twice": result["frames_twice"],
+        "file_truncated": result["file_truncated"], "leftover_shm": sorted(shm_files() - before),
+        "gave_up": "giving up" in run.text(), "records": result["records"],
+    }
+    if not summary["exact"] or not summary["intact"] or summary["leftover_shm"] or summary["gave_up"]:
+        log(f"  finding in camera-gone/{source}/{mode}: {json.dumps(summary)[:600]}")
+        (Path(workdir) / f"{prefix}.log").write_text(run.text())
+    return records, summary
+
+
 # ---------------------------------------------------------------- damaged recordings and a full disk
 
 
@@ -651,7 +798,7 @@ def main():
     faults = [f"kill-{s}" for s in STAGES] + [f"stop-{s}" for s in STAGES]
     faults += ["stall-rust", "stall-python", "stall-zenoh", "stall-websocket"]
     faults += [f"inject-{s}" for s in ["frames", "particles", "clusters", "trajectories"]]
-    faults += ["disk-full", "truncated-video", "corrupt-frames"]
+    faults += ["disk-full", "truncated-video", "corrupt-frames", "camera-gone"]
     if args.only:
         wanted = args.only.split(",")
         faults = [f for f in faults if f in wanted]
@@ -672,7 +819,10 @@ def main():
                     all_trials.append(t)
                 continue
             for source, mode in scenarios:
-                out = run_scenario(fault, source, mode, args.trials, rng, workdir)
+                if fault == "camera-gone":
+                    out = camera_gone_trials(source, mode, args.trials, rng, workdir)
+                else:
+                    out = run_scenario(fault, source, mode, args.trials, rng, workdir)
                 if isinstance(out, list):
                     all_trials += out
                     log(f"  {source}/{mode}: did not start")

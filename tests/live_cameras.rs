@@ -389,3 +389,96 @@ fn a_camera_whose_timestamps_jitter_and_one_that_starts_late_are_grouped_by_capt
     assert!(scores.head.agreement >= 0.9, "{scores:?}");
     assert!(scores.left_hand.agreement >= 0.8 && scores.right_hand.agreement >= 0.8, "{scores:?}");
 }
+
+/// A network camera as many are (MJPEG over HTTP), served by ffmpeg from `images` at `fps`,
+/// looped, from frame `start`; one client, as `-listen 1` serves.
+fn mjpeg_over_http(images: &Path, fps: u32, start: u32, port: u16) -> Child {
+    Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-re", "-stream_loop", "-1", "-framerate", &fps.to_string()])
+        .args(["-start_number", &start.to_string(), "-i"])
+        .arg(images.join("%06d.png"))
+        .args(["-c:v", "mjpeg", "-q:v", "3", "-f", "mpjpeg", "-listen", "1"])
+        .arg(format!("http://127.0.0.1:{port}/cam"))
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+#[test]
+fn a_network_camera_that_drops_off_and_comes_back_rejoins_the_frame_sets() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let _one = ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let (frames, fps) = (60u32, 10u32);
+    let rec = render_preset(dir.path(), "signer-3cam", frames, Some((320, 240)));
+    let rig = Recording::open(&rec).unwrap().rig().clone();
+    let reference = rig.most_frontal_camera();
+    let away = (0..rig.cameras.len()).rev().find(|&k| k != reference).unwrap();
+    let ports: Vec<u16> = rig
+        .cameras
+        .iter()
+        .map(|_| std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).unwrap().port())
+        .collect();
+    let mut servers: Vec<Child> = rig
+        .cameras
+        .iter()
+        .zip(&ports)
+        .map(|(cam, &port)| mjpeg_over_http(&rec.join(&cam.name), fps, 0, port))
+        .collect();
+    std::thread::sleep(Duration::from_millis(500));
+    let sources: Vec<(String, String)> = rig
+        .cameras
+        .iter()
+        .zip(&ports)
+        .map(|(cam, port)| (cam.name.clone(), format!("http://127.0.0.1:{port}/cam")))
+        .collect();
+    let (file, out) = write_pipeline(dir.path(), "live", &rec, "live-network-away", &sources, fps);
+    let total = 160;
+    std::fs::write(
+        &file,
+        std::fs::read_to_string(&file).unwrap().replacen("mode =", &format!("frames = {total}\nmode ="), 1),
+    )
+    .unwrap();
+    let run = {
+        let file = file.clone();
+        std::thread::spawn(move || run_pipeline(&file, Duration::from_secs(240)))
+    };
+    // Off the network once the stream is going, for two seconds, then back where it
+    // would have been.
+    let started = Instant::now();
+    while read_tracks(&out).map_or(0, |r| r.len()) < 30 && started.elapsed() < Duration::from_secs(60) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = servers[away].kill();
+    let _ = servers[away].wait();
+    let gone_at = Instant::now();
+    std::thread::sleep(Duration::from_secs(2));
+    let resume = (started.elapsed().as_secs_f64() * f64::from(fps)) as u32 % frames;
+    servers[away] = mjpeg_over_http(&rec.join(&rig.cameras[away].name), fps, resume, ports[away]);
+    let (ok, log) = run.join().unwrap();
+    let away_for = gone_at.elapsed();
+    for server in &mut servers {
+        let _ = server.kill();
+        let _ = server.wait();
+    }
+    assert!(ok, "the run failed:\n{log}");
+    let name = &rig.cameras[away].name;
+    assert!(log.contains(&format!("camera `{name}` lost")), "the loss is logged:\n{log}");
+    assert!(log.contains(&format!("camera `{name}`: back after")), "the return is logged:\n{log}");
+    let records = read_tracks(&out).unwrap();
+    assert!(records.len() >= 60, "{} samples of {total} (live: some skipped):\n{log}", records.len());
+    // Sets went on without it while it was away, and had it again once it was back.
+    let without: Vec<usize> =
+        records.iter().enumerate().filter(|(_, r)| r.missing_views == 1 << away).map(|(k, _)| k).collect();
+    assert!(!without.is_empty(), "no set went without `{name}` ({away_for:?} away):\n{log}");
+    let last_without = *without.last().unwrap();
+    let after: Vec<_> = records[last_without + 1..].iter().collect();
+    assert!(after.len() >= 20, "{} sets with `{name}` back:\n{log}", after.len());
+    assert!(after.iter().all(|r| r.missing_views == 0), "{after:?}");
+    assert!(records.iter().all(|r| r.missing_views & !(1 << away) == 0), "only that camera went missing");
+    assert!(records.iter().all(|r| r.objects["head"].pos.iter().all(|v| v.is_finite())));
+}

@@ -332,8 +332,12 @@ pub mod camera_state {
     pub const RUNNING: u32 = 0;
     /// Its source ended (a video played as a camera).
     pub const ENDED: u32 = 1;
-    /// It failed (unplugged, stream lost); the stream goes on without it.
+    /// It failed for good (a video played as a camera that broke); the stream goes on
+    /// without it.
     pub const FAILED: u32 = 2;
+    /// Lost (unplugged, off the network, silent) and being opened again; the stream goes
+    /// on without it meanwhile.
+    pub const RECONNECTING: u32 = 3;
 }
 
 /// One live camera's health since the stream started.
@@ -414,7 +418,7 @@ impl CameraStatusSet {
             if !(c.rate_hz.is_finite() && c.rate_hz >= 0.0) {
                 return Err(field_error(KIND, self.frame_sets, "cameras", format!("{}: rate {}", c.name(), c.rate_hz)));
             }
-            if c.state > camera_state::FAILED {
+            if c.state > camera_state::RECONNECTING {
                 return Err(field_error(KIND, self.frame_sets, "cameras", format!("{}: state {}", c.name(), c.state)));
             }
         }

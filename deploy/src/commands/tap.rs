@@ -49,6 +49,7 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
                         let state = match c.state {
                             camera_state::RUNNING => "running",
                             camera_state::ENDED => "ended",
+                            camera_state::RECONNECTING => "reconnecting",
                             _ => "FAILED",
                         };
                         format!(

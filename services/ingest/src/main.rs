@@ -9,7 +9,8 @@ use clap::Parser;
 use handflow_ingest::live::{
     camera::{clock_now_ns, init_clock},
     sync::MAX_WAITING_FRAMES,
-    CameraSource, FrameSetSync, LiveCamera, LiveCameraSpec, RecordingWriter, StartOptions,
+    CameraFeed, CameraSource, FeedEvent, FeedSpec, FrameSetSync, LiveCamera, LiveCameraSpec, RecordingWriter,
+    StartOptions,
 };
 use handflow_ingest::synthetic::{Renderer, SceneSpec};
 use handflow_ingest::{OpenOptions, Recording};
@@ -394,8 +395,19 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         fps = fps.or(spec.fps);
         // Replay loses nothing after the cameras: a camera's frames wait for the pipeline.
         let options = StartOptions { lossless: args.mode == Mode::Replay, rig_start_ns: Some(rig_start_ns) };
-        cameras.push(LiveCamera::start_with(&cam.name, &source, cam.width, cam.height, spec.size, spec.fps, options)?);
+        let camera = LiveCamera::start_with(&cam.name, &source, cam.width, cam.height, spec.size, spec.fps, options)?;
         tracing::info!("camera `{}`: started from `{}`", cam.name, spec.source);
+        let feed = FeedSpec {
+            name: cam.name.clone(),
+            source,
+            width: cam.width,
+            height: cam.height,
+            size: spec.size,
+            fps: spec.fps,
+            options,
+            detect_silence: args.mode == Mode::Live,
+        };
+        cameras.push(CameraFeed::new(feed, camera));
     }
     let fps = fps.unwrap_or(DEFAULT_LIVE_FPS);
     let interval_ns = (1e9 / fps) as u64;
@@ -458,7 +470,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     let mut unrecorded = 0u64;
     let reference = rig.most_frontal_camera();
     while sequence < total && !ipc::stop_requested() {
-        for (k, camera) in cameras.iter().enumerate() {
+        for (k, camera) in cameras.iter_mut().enumerate() {
             // Read before the hand-over is emptied: an ended source is over once its last
             // frames are out of the hand-over too.
             let source_ended = camera.ended();
@@ -478,13 +490,31 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
                 tracing::trace!("camera `{}`: frame captured at {} ns", camera.name(), frame.capture_ns);
                 sync.push(k, frame);
             }
-            if !failed[k] {
-                if let Some(problem) = camera.failure() {
+            if gone[k] {
+                continue;
+            }
+            match camera.poll(Instant::now()) {
+                FeedEvent::Unchanged => {}
+                FeedEvent::Failed(problem) => {
                     tracing::error!("camera `{}` stopped: {problem}", camera.name());
                     failed[k] = true;
                     // A failed camera delivers nothing more: sets stop waiting for it.
                     sync.finish_camera(k);
                     gone[k] = true;
+                }
+                FeedEvent::Lost(problem) => {
+                    // The stream goes on without it while it is opened again.
+                    tracing::warn!("camera `{}` lost: {problem}; opening it again", camera.name());
+                    sync.finish_camera(k);
+                }
+                FeedEvent::Back { attempts, away } => {
+                    tracing::info!(
+                        "camera `{}`: back after {:.2} s ({attempts} attempt{})",
+                        camera.name(),
+                        away.as_secs_f64(),
+                        if attempts == 1 { "" } else { "s" }
+                    );
+                    sync.rejoin_camera(k);
                 }
             }
         }
@@ -589,7 +619,7 @@ impl CameraHealth {
     fn publish(
         &mut self,
         out: &ipc::Output<CameraStatusSet, ()>,
-        cameras: &[LiveCamera],
+        cameras: &[CameraFeed],
         sync: &FrameSetSync,
         failed: &[bool],
         frame_sets: u64,
@@ -617,6 +647,8 @@ impl CameraHealth {
                 stats.last_capture_ns.map_or(0, |t| (t as i128 + self.unix_offset).max(0) as u64);
             status.state = if failed[k] {
                 camera_state::FAILED
+            } else if camera.is_lost() {
+                camera_state::RECONNECTING
             } else if camera.ended() {
                 camera_state::ENDED
             } else {
@@ -632,7 +664,7 @@ impl CameraHealth {
 /// One log line per camera: its rate over the last `seconds`, frames in sets and dropped,
 /// sets it missed, age of its newest frame. `delivered` holds each camera's count at the
 /// last report.
-fn report_cameras(cameras: &[LiveCamera], sync: &FrameSetSync, delivered: &mut [u64], seconds: f64) {
+fn report_cameras(cameras: &[CameraFeed], sync: &FrameSetSync, delivered: &mut [u64], seconds: f64) {
     let now = clock_now_ns();
     for ((camera, stats), before) in cameras.iter().zip(sync.stats()).zip(delivered.iter_mut()) {
         let count = camera.delivered();

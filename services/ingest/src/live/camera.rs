@@ -108,7 +108,9 @@ impl CameraSource {
                      decodebin ! {tail}"
                 )
             }
-            CameraSource::Network { uri } => format!("uridecodebin uri=\"{uri}\" ! {tail}"),
+            // uridecodebin3: the older bin holds an MJPEG stream over HTTP back (its
+            // decodebin waits for more streams before it lets frames through).
+            CameraSource::Network { uri } => format!("uridecodebin3 uri=\"{uri}\" ! {tail}"),
             CameraSource::File { path } => format!("uridecodebin uri=\"file://{}\" ! {tail}", path.display()),
             CameraSource::Launch { description } => format!("{description} ! decodebin ! {tail}"),
         }
@@ -357,8 +359,8 @@ impl Drop for LiveCamera {
 }
 
 /// A pulled sample as a frame stamped with its capture time: the pipeline's base time plus
-/// the buffer's running time, both on the shared clock. `Ok(None)` for a sample without a
-/// time; an error for a frame of another size than the calibration's.
+/// the buffer's running time, both on the shared clock (its arrival for a sample without a
+/// time). `Ok(None)` for a sample without a buffer; an error for a frame of another size than the calibration's.
 fn timed_frame(
     sample: &gst::Sample,
     pipeline: &gst::Pipeline,
@@ -375,18 +377,23 @@ fn timed_frame(
             info.height()
         ));
     }
-    let Some(pts) = buffer.pts() else { return Ok(None) };
-    let running = sample
-        .segment()
-        .and_then(|s| s.downcast_ref::<gst::format::Time>().and_then(|s| s.to_running_time(pts)))
-        .unwrap_or(pts);
-    let base = pipeline.base_time().unwrap_or(gst::ClockTime::ZERO);
+    // A frame without a time (an MJPEG stream over HTTP has none) is stamped as it arrives.
+    let capture_ns = match buffer.pts() {
+        Some(pts) => {
+            let running = sample
+                .segment()
+                .and_then(|s| s.downcast_ref::<gst::format::Time>().and_then(|s| s.to_running_time(pts)))
+                .unwrap_or(pts);
+            (pipeline.base_time().unwrap_or(gst::ClockTime::ZERO) + running).nseconds()
+        }
+        None => clock_now_ns(),
+    };
     let frame = gst_video::VideoFrameRef::from_buffer_ref_readable(buffer, &info)
         .map_err(|e| format!("cannot map a frame: {e}"))?;
     let data = frame.plane_data(0).map_err(|e| format!("cannot read a frame: {e}"))?;
     let mut rgb = vec![0u8; width as usize * height as usize * 3];
     yuv::copy_rgb_rows(data, frame.plane_stride()[0] as usize, width as usize, height as usize, &mut rgb)?;
-    Ok(Some(TimedFrame { capture_ns: (base + running).nseconds(), delivered_ns: clock_now_ns(), data: rgb }))
+    Ok(Some(TimedFrame { capture_ns, delivered_ns: clock_now_ns(), data: rgb }))
 }
 
 #[cfg(test)]

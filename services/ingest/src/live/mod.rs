@@ -3,12 +3,14 @@
 //! capture time ([`sync`]).
 
 pub mod camera;
+pub mod feed;
 pub mod sync;
 pub mod writer;
 
 use serde::{Deserialize, Serialize};
 
 pub use camera::{CameraSource, LiveCamera, LiveCameraError, StartOptions};
+pub use feed::{CameraFeed, FeedEvent, FeedSpec};
 pub use sync::{CameraSyncStats, FrameSetSync, TimedFrame};
 pub use writer::{RecordingWriter, VideoFileWriter, WriteError, WEBM_VP8};
 

@@ -90,6 +90,14 @@ impl FrameSetSync {
         }
     }
 
+    /// Says that `camera`, finished when it was lost, delivers again: windows wait for it
+    /// once more.
+    pub fn rejoin_camera(&mut self, camera: usize) {
+        if let Some(g) = self.gone.get_mut(camera) {
+            *g = false;
+        }
+    }
+
     /// Frames of `camera` waiting for their sets.
     pub fn waiting(&self, camera: usize) -> usize {
         self.queues.get(camera).map_or(0, VecDeque::len)

@@ -169,6 +169,7 @@ fn camera_rows(set: &CameraStatusSet) -> Vec<Value> {
             let state = match c.state {
                 camera_state::RUNNING => "running",
                 camera_state::ENDED => "ended",
+                camera_state::RECONNECTING => "reconnecting",
                 _ => "failed",
             };
             let age = (c.last_capture_unix_ns > 0).then(|| now.saturating_sub(c.last_capture_unix_ns) as f64 * 1e-9);
