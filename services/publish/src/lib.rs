@@ -12,6 +12,7 @@
 
 pub mod drawing;
 pub mod file;
+pub mod latency;
 pub mod viewer;
 
 use std::collections::BTreeMap;

@@ -9,6 +9,7 @@ use clap::Parser;
 use handflow_protocol::ipc::{self, Mode, Next, ServiceNames};
 use handflow_protocol::messages::StreamProgress;
 use handflow_publish::file::TrajectoryFile;
+use handflow_publish::latency::LatencyHistogram;
 use handflow_publish::viewer::{Viewer, ViewerOptions};
 use handflow_publish::{trajectory_sample, SequenceGaps, TrajectoryRecord};
 
@@ -57,18 +58,6 @@ const SUBSCRIBER_WAIT: Duration = Duration::from_secs(10);
 fn main() {
     ipc::init_logging();
     ipc::exit_with(run(Args::parse()))
-}
-
-/// Glass-to-trajectory latencies, for the end-of-stream report.
-#[derive(Default)]
-struct Latencies(Vec<f64>);
-
-impl Latencies {
-    fn percentile(&self, p: f64) -> f64 {
-        let mut v = self.0.clone();
-        v.sort_by(f64::total_cmp);
-        v.get(((v.len() as f64 - 1.0) * p).round().max(0.0) as usize).copied().unwrap_or(0.0)
-    }
 }
 
 fn run(args: Args) -> Result<()> {
@@ -126,7 +115,7 @@ fn run(args: Args) -> Result<()> {
         None => SequenceGaps::default(),
     };
     let mut published = 0u64;
-    let mut latencies = Latencies::default();
+    let mut latencies = LatencyHistogram::default();
     ipc::serve(&clusters, Duration::from_millis(100), |sample| -> Result<Next> {
         let set = *sample.payload();
         drop(sample);
@@ -168,12 +157,12 @@ fn run(args: Args) -> Result<()> {
             }
             gaps = SequenceGaps::default();
             published = 0;
-            latencies = Latencies::default();
+            latencies = LatencyHistogram::default();
             return Ok(Next::Continue);
         }
         published += 1;
         if set.capture_unix_ns > 0 {
-            latencies.0.push(now.saturating_sub(set.capture_unix_ns) as f64 * 1e-9);
+            latencies.add(now.saturating_sub(set.capture_unix_ns) as f64 * 1e-9);
         }
         if let Some(sink) = sink.as_mut() {
             sink.write(&record);
