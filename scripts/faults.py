@@ -208,27 +208,37 @@ def reported_losses(text):
 
 
 def check_output(follower, run):
-    """Sequences present (from frames, unwrapping loops), missing, and the integrity checks."""
+    """Sequences present (from frames, unwrapping loops by the records' stream times), missing,
+    and the integrity checks."""
     length, first = recording_length(run)
-    sequences, invalid, twice, truncated = [], 0, 0, False
-    loop, previous = 0, None
+    parsed, invalid, truncated = [], 0, False
     for _, text in list(follower.lines):
         if text == "<<truncated>>":
             truncated = True
             continue
         try:
-            frame = json.loads(text)["frame"]
+            record = json.loads(text)
+            parsed.append((int(record["frame"]), float(record["t"])))
         except (ValueError, KeyError, TypeError):
             invalid += 1
+    # A looped replay's stream time keeps growing across passes, its frame numbers start
+    # again: the frames elapsed between two records are the time between them over one
+    # frame's time, which tells how many passes lie between them, however long a stall was.
+    steps = [t1 - t0 for (f0, t0), (f1, t1) in zip(parsed, parsed[1:]) if f1 == f0 + 1 and t1 > t0]
+    frame_time = statistics.median(steps) if steps else None
+    sequences, twice = [], 0
+    previous = None  # (sequence, t)
+    for frame, t in parsed:
+        sequence = frame - first
+        if length and previous is not None and frame_time:
+            elapsed = (t - previous[1]) / frame_time
+            passes = round((previous[0] + elapsed - sequence) / length)
+            sequence += max(passes, 0) * length
+        if previous is not None and sequence <= previous[0]:
+            twice += 1
             continue
-        if previous is not None and frame <= previous:
-            if length and previous - frame > length // 2:
-                loop += 1
-            else:
-                twice += 1
-                continue
-        previous = frame
-        sequences.append(loop * (length or 0) + frame - first)
+        previous = (sequence, t)
+        sequences.append(sequence)
     present = set(sequences)
     last = max(present) if present else 0
     missing = set(range(1, last + 1)) - present

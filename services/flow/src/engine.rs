@@ -194,7 +194,11 @@ impl SceneFlowEngine {
         let levels = config.pyramid_levels;
         let projections = (0..levels).map(|l| cameras.iter().map(|c| LevelProjection::new(c, l)).collect()).collect();
         let grid_levels = if config.per_level_rays { levels } else { 1 };
-        let grids: Vec<RayGrid> = (0..grid_levels).map(|l| ray_grid(ref_cam, l)).collect();
+        // Rays finer than the finest ray level are never cast: their grids keep only their
+        // sizes (a 1280x720 camera's full-resolution grid would cost a quarter of a second
+        // of undistortion at every start, which a restarted stage waits for).
+        let cast_from = if config.per_level_rays { finest_ray_level(&config) } else { 0 };
+        let grids: Vec<RayGrid> = (0..grid_levels).map(|l| ray_grid(ref_cam, l, l >= cast_from)).collect();
         let centre = ref_cam.centre();
         let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
         let axis = ref_cam.rotation.matrix().row(2).transpose();
@@ -1447,14 +1451,15 @@ fn finest_ray_level(config: &EngineConfig) -> usize {
     config.finest_level + config.ray_subsampling
 }
 
-/// Rays of the reference camera through the pixel centres of pyramid level `level`.
-fn ray_grid(camera: &Camera, level: usize) -> RayGrid {
+/// Rays of the reference camera through the pixel centres of pyramid level `level`; only
+/// the grid's size unless `with_rays`.
+fn ray_grid(camera: &Camera, level: usize, with_rays: bool) -> RayGrid {
     let s = 1usize << level;
     let width = (camera.width as usize).div_ceil(s).max(1);
     let height = (camera.height as usize).div_ceil(s).max(1);
     let rotation_t = camera.rotation.matrix().transpose();
-    let mut dirs = Vec::with_capacity(width * height);
-    for j in 0..height {
+    let mut dirs = Vec::with_capacity(if with_rays { width * height } else { 0 });
+    for j in (0..height).take_while(|_| with_rays) {
         for i in 0..width {
             // Level pixel centre in full-resolution coordinates.
             let u = (i as f64 + 0.5) * s as f64 - 0.5;
