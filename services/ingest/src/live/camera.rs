@@ -287,8 +287,19 @@ impl LiveCamera {
                             Ok(Some(frame)) => {
                                 set(&|s| s.delivered += 1);
                                 if lossless {
-                                    if sender.send(frame).is_err() {
-                                        return;
+                                    // Waits for room, but not past a stop: a blocking send
+                                    // to a full hand-over nobody empties any more would
+                                    // keep the camera (and its process) from ending.
+                                    let mut pending = frame;
+                                    loop {
+                                        match sender.try_send(pending) {
+                                            Ok(()) => break,
+                                            Err(TrySendError::Full(f)) if !stop.load(Ordering::Relaxed) => {
+                                                pending = f;
+                                                std::thread::sleep(Duration::from_millis(2));
+                                            }
+                                            Err(_) => return,
+                                        }
                                     }
                                     continue;
                                 }
@@ -451,6 +462,23 @@ mod tests {
         // Stamped on the shared clock: in the recent past.
         let now = clock_now_ns();
         assert!(frames[9].capture_ns <= now && now - frames[9].capture_ns < 2_000_000_000);
+    }
+
+    #[test]
+    fn a_lossless_camera_whose_hand_over_is_full_stops_when_dropped() {
+        // Replay mode: nobody takes its frames, so its thread waits for room; dropping it
+        // must still end that thread (a blocking send kept a stopping ingest alive forever).
+        let options = StartOptions { lossless: true, rig_start_ns: None };
+        let camera =
+            LiveCamera::start_with("cam0", &test_source(32, 24, "red"), 32, 24, None, None, options).expect("starts");
+        let started = std::time::Instant::now();
+        while camera.delivered() <= HANDOVER_FRAMES as u64 && started.elapsed() < Duration::from_secs(10) {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        assert!(camera.delivered() > HANDOVER_FRAMES as u64, "the hand-over filled up");
+        let dropping = std::time::Instant::now();
+        drop(camera);
+        assert!(dropping.elapsed() < Duration::from_secs(2), "dropped in {:?}", dropping.elapsed());
     }
 
     #[test]
