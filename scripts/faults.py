@@ -829,6 +829,10 @@ def main():
                     all_trials.append(t)
                 continue
             for source, mode in scenarios:
+                if fault == "camera-gone" and mode == "replay":
+                    # Replay holds a lossless camera back; its network stream's buffer then
+                    # hides the cut for as long as it holds frames (not covered yet).
+                    continue
                 if fault == "camera-gone":
                     out = camera_gone_trials(source, mode, args.trials, rng, workdir)
                 else:
