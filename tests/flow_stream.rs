@@ -79,3 +79,49 @@ fn a_stream_joined_part_way_estimates_from_its_second_frame() {
     );
     assert_eq!(frames, (11..u64::from(FRAMES)).collect::<Vec<_>>());
 }
+
+/// Likelihood evaluations of the first and second estimates of a stream pushed from frame
+/// `first`, and whether the second carried the first's posterior.
+fn first_two_estimates(join: bool, first: u64) -> (u64, u64, bool) {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = Recording::open(render_preset(dir.path(), "signer-3cam", FRAMES, Some((160, 120)))).unwrap();
+    let rig = rec.rig();
+    let reference = rig.most_frontal_camera();
+    let config = stream_engine_config(Variant::Handflow, None, rec.frame_rate(), &rig.cameras, reference);
+    let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference).unwrap();
+    let mut stream = FlowStream::new(engine).with_frame_rate(rec.frame_rate());
+    if join {
+        stream.joining_mid_stream();
+    }
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    let mut stats = Vec::new();
+    // A stream from its start holds its first frames for the warm-up's face detections.
+    for k in first..u64::from(FRAMES) {
+        if stats.len() >= 2 {
+            break;
+        }
+        rec.read_frame_into(k, false, &mut buf).unwrap();
+        stream
+            .push(k, &buf, |_, engine: &SceneFlowEngine, _| {
+                stats.push(engine.stats());
+                Ok::<(), StreamError>(())
+            })
+            .unwrap();
+    }
+    assert!(stats.len() >= 2, "two estimates from {} frames", u64::from(FRAMES) - first);
+    (stats[0].evaluations, stats[1].evaluations, stats[1].used_temporal_prior)
+}
+
+#[test]
+fn a_stream_joined_part_way_answers_with_a_cheaper_first_estimate_then_carries_it() {
+    let (start_first, start_second, start_carried) = first_two_estimates(false, 0);
+    let (join_first, join_second, join_carried) = first_two_estimates(true, 10);
+    assert!(start_carried && join_carried, "later estimates build on the first");
+    // A first estimate runs its broad pass plus the extra passes: 1 + 8 at a stream's start,
+    // 1 + 1 when joining. Each pass is about one carried estimate's work.
+    assert!(
+        join_first * 2 < start_first,
+        "joining: {join_first} evaluations, start: {start_first} (carried: {start_second}, {join_second})"
+    );
+    assert!(join_first > join_second, "still more than a carried estimate: {join_first} vs {join_second}");
+}

@@ -436,6 +436,18 @@ struct Settings {
 /// Live, two frame sets wait: one estimate slower than a frame interval then delays the next
 /// frame instead of dropping it.
 const FRAMES: Settings = Settings { max_subscribers: 4, buffer: 4, live_buffer: 2, borrowed: 4, history: 0 };
+/// Live frame sets keep the last two as history: a restarted flow stage gets them at once
+/// and estimates on the next frame set instead of waiting for three new ones (a third of a
+/// second at 6 frames per second). Replay keeps none: a restarted stage must not estimate a
+/// frame set twice.
+const FRAMES_LIVE: Settings = Settings { history: 2, ..FRAMES };
+
+fn frames_settings(mode: Mode) -> Settings {
+    match mode {
+        Mode::Replay => FRAMES,
+        Mode::Live => FRAMES_LIVE,
+    }
+}
 /// Particle sets.
 const PARTICLES: Settings = Settings { max_subscribers: 4, buffer: 4, live_buffer: 1, borrowed: 2, history: 0 };
 /// Labelled clusters (small).
@@ -558,7 +570,7 @@ pub fn frames_output(
     frame_set_len: usize,
 ) -> Result<Output<[u8], FrameHeader>, IpcError> {
     let name = names.frames();
-    let service = open_service!(node, &name, [u8], FrameHeader, FRAMES, mode.safe_overflow());
+    let service = open_service!(node, &name, [u8], FrameHeader, frames_settings(mode), mode.safe_overflow());
     let publisher = publisher_builder_settings(&service, mode)
         .initial_max_slice_len(frame_set_len.max(1))
         .allocation_strategy(AllocationStrategy::PowerOfTwo)
@@ -601,7 +613,7 @@ impl Output<StreamProgress, ()> {
 /// Subscriber of frame sets.
 pub fn frames_input(node: &Node<Ipc>, names: &ServiceNames, mode: Mode) -> Result<Input<[u8], FrameHeader>, IpcError> {
     let name = names.frames();
-    let service = open_service!(node, &name, [u8], FrameHeader, FRAMES, mode.safe_overflow());
+    let service = open_service!(node, &name, [u8], FrameHeader, frames_settings(mode), mode.safe_overflow());
     input(node, name, &service, buffer_for(mode, FRAMES))
 }
 
@@ -895,6 +907,32 @@ mod tests {
         assert_eq!("live".parse::<Mode>().unwrap(), Mode::Live);
         assert_eq!(Mode::Replay.to_string(), "replay");
         assert!("fast".parse::<Mode>().unwrap_err().contains("`fast`"));
+    }
+
+    /// Sends frame sets 0, 1 and 2 on a fresh frames service in `mode`, then subscribes (as a
+    /// restarted flow stage does) and returns the sequences the late subscriber is handed.
+    fn late_subscriber_is_handed(mode: Mode) -> Vec<u64> {
+        let node = create_node("ipc-history-test").unwrap();
+        let names = ServiceNames::new(format!("history-test-{}-{mode}", std::process::id()));
+        let frames = frames_output(&node, &names, mode, 4).unwrap();
+        for sequence in 0..3 {
+            let mut sample = frames.publisher.loan_slice(4).unwrap();
+            *sample.user_header_mut() = FrameHeader { sequence, ..FrameHeader::default() };
+            sample.send().unwrap();
+        }
+        let input = frames_input(&node, &names, mode).unwrap();
+        frames.update_connections();
+        let mut sequences = Vec::new();
+        while let Some(sample) = input.receive_one().unwrap() {
+            sequences.push(sample.user_header().sequence);
+        }
+        sequences
+    }
+
+    #[test]
+    fn a_late_live_frames_subscriber_gets_the_last_two_frame_sets_and_a_replay_one_none() {
+        assert_eq!(late_subscriber_is_handed(Mode::Live), vec![1, 2]);
+        assert_eq!(late_subscriber_is_handed(Mode::Replay), Vec::<u64>::new());
     }
 
     #[test]

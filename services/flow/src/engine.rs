@@ -150,6 +150,9 @@ pub struct SceneFlowEngine {
     /// `active[grid level]`: rays that may hold particles in the frame being estimated
     /// (`skin` coverage): see `skin_footprint_share`.
     active: Vec<Vec<bool>>,
+    /// Extra passes for the next estimate without a carried posterior, instead of the
+    /// configuration's (a stage joining a stream part-way must answer quickly).
+    next_cold_start_passes: Option<usize>,
 }
 
 /// Where a pass over a frame takes its particles from.
@@ -190,7 +193,6 @@ impl SceneFlowEngine {
                 cameras.len()
             )));
         };
-        let (width, height) = (ref_cam.width as usize, ref_cam.height as usize);
         let levels = config.pyramid_levels;
         let projections = (0..levels).map(|l| cameras.iter().map(|c| LevelProjection::new(c, l)).collect()).collect();
         let grid_levels = if config.per_level_rays { levels } else { 1 };
@@ -214,7 +216,10 @@ impl SceneFlowEngine {
             pixels_per_inverse_depth: focal * baseline,
             focal_px: focal,
         };
-        let rays = width * height;
+        // Particle stores for the largest grid that holds particles: a grid finer than the
+        // finest ray level never does (four 1280x720 views: 265 MB of particles written at
+        // every start otherwise, a tenth of a second a restarted stage waits for).
+        let rays = grids[cast_from].width * grids[cast_from].height;
         let n = config.particles_per_ray;
         let ray_level = finest_ray_level(&config);
         let (field_width, field_height) = (grids[ray_level].width, grids[ray_level].height);
@@ -258,6 +263,7 @@ impl SceneFlowEngine {
             },
             stats: FrameStats::default(),
             skin_models,
+            next_cold_start_passes: None,
             skin_maps: Default::default(),
             active,
         })
@@ -343,11 +349,18 @@ impl SceneFlowEngine {
         point_on_ray(self.origin, self.grids[finest_ray_level(&self.config)].dirs[ray], particle.depth)
     }
 
+    /// Runs `passes` extra passes instead of the configuration's `cold_start_passes` over
+    /// the next frame estimated without a carried posterior (then the configuration's again).
+    pub fn set_next_cold_start_passes(&mut self, passes: usize) {
+        self.next_cold_start_passes = Some(passes);
+    }
+
     /// Forgets every frame and the posterior (a new, unrelated stream follows).
     pub fn reset(&mut self) {
         self.ring_len = 0;
         self.posterior_of = None;
         self.posterior_slot = None;
+        self.next_cold_start_passes = None;
     }
 
     /// Adds the next synchronised frame set (RGB8, one view per camera in rig order) and
@@ -467,7 +480,8 @@ impl SceneFlowEngine {
         let prior = if carried { Prior::Carried } else { Prior::None };
         let mut evaluations = self.estimate_pass(window, frame, prior, 0);
         if !carried {
-            for pass in 1..=self.config.cold_start_passes as u64 {
+            let passes = self.next_cold_start_passes.take().unwrap_or(self.config.cold_start_passes);
+            for pass in 1..=passes as u64 {
                 evaluations += self.estimate_pass(window, frame, Prior::Held, pass);
             }
         }

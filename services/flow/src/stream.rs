@@ -83,6 +83,14 @@ pub const STREAM_VELOCITY_PRIOR_DEPTH: f32 = 0.15;
 /// `signer-3cam`: head agreement 98.0 % with none, 99.3 % with 2, 100 % with 4 and 8; 8
 /// costs about 0.25 s once).
 pub const STREAM_COLD_START_PASSES: usize = 8;
+/// Extra passes over the first frame of a stream joined part-way (a restarted stage): the
+/// stream's trajectories are already running, and the eight passes of a start cost a
+/// restarted stage most of its second (0.7 s on four 1280x720 views), while the carried
+/// posterior settles the depth over the next frames.
+pub const JOIN_COLD_START_PASSES: usize = 1;
+/// Frames a stream joined part-way pushes before its first estimate is out
+/// (forwards/backwards: t-1, t and t+1).
+const JOIN_FIRST_ESTIMATE_FRAMES: u64 = 3;
 
 /// The engine configuration for trajectories: the variant's defaults, skin coverage, the
 /// forwards/backwards likelihood, the search space of a signer at `fps`, the grid of the
@@ -466,6 +474,9 @@ pub struct FlowStream<M> {
     waits_by_default: bool,
     /// Frames between face detections.
     detect_every: u64,
+    /// Push index of the first face detection (0; later for a stream joined part-way, whose
+    /// first estimate should have both cores).
+    detect_from: u64,
     /// Frames between a detection and the use of its models.
     model_lag: u64,
     /// Frames between the warm-up's detection rounds.
@@ -503,6 +514,7 @@ impl<M> FlowStream<M> {
             wait_for_models: true,
             waits_by_default: true,
             detect_every: DEFAULT_DETECT_EVERY,
+            detect_from: 0,
             model_lag: MODEL_LAG,
             warm_up_spacing: DEFAULT_DETECT_EVERY,
             face_rounds: VecDeque::new(),
@@ -561,11 +573,15 @@ impl<M> FlowStream<M> {
     }
 
     /// For a stream joined part-way through (a restarted stage): nothing is held and
-    /// nothing waits for the face detector, so estimates start two frames later; the skin
-    /// models start generic and adapt as detections finish.
+    /// nothing waits for the face detector, so estimates start two frames later, the first
+    /// with [`JOIN_COLD_START_PASSES`] extra passes; the skin models start generic and
+    /// adapt as detections finish, the first started once the first estimate is out.
     pub fn joining_mid_stream(&mut self) {
         self.warm_up_frames = 0;
         self.wait_for_models = false;
+        self.engine.set_next_cold_start_passes(JOIN_COLD_START_PASSES);
+        // The face detector starts after the first estimate instead of competing with it.
+        self.detect_from = self.pushed + JOIN_FIRST_ESTIMATE_FRAMES;
     }
 
     /// Never waits for the face detector: adapted models are applied at the first frame
@@ -636,6 +652,7 @@ impl<M> FlowStream<M> {
         self.warm_up_frames = warm_up_frames(self.warm_up_spacing);
         self.wait_for_models = self.waits_by_default;
         self.pushed = 0;
+        self.detect_from = 0;
         self.pending_models.clear();
         self.waiting.clear();
         self.face_rounds.clear();
@@ -743,7 +760,8 @@ impl<M> FlowStream<M> {
         on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         let k = self.pushed;
-        if k.is_multiple_of(self.detect_every) && (self.wait_for_models || self.pending_models.is_empty()) {
+        let detect = k >= self.detect_from && (k - self.detect_from).is_multiple_of(self.detect_every);
+        if detect && (self.wait_for_models || self.pending_models.is_empty()) {
             self.faces.send(k, frame_set.to_vec(), missing)?;
             self.pending_models.push_back(k + self.model_lag);
         }

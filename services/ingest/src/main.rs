@@ -228,6 +228,7 @@ fn run(args: Args) -> Result<()> {
     // Paced as if the stream had run from its first frame set.
     let already = interval.saturating_mul(first.min(u64::from(u32::MAX)) as u32);
     let started = Instant::now().checked_sub(already).unwrap_or_else(Instant::now);
+    let mut history = HistoryHandOut::default();
     for sequence in first..total {
         if ipc::stop_requested() {
             return Ok(());
@@ -235,7 +236,7 @@ fn run(args: Args) -> Result<()> {
         if pace == Pace::Recorded {
             let due = interval.saturating_mul(sequence.min(u64::from(u32::MAX)) as u32);
             if let Some(wait) = due.checked_sub(started.elapsed()) {
-                if node.wait(wait).is_err() {
+                if !wait_serving_history(&node, &frames, &mut history, args.mode, wait)? {
                     return Ok(());
                 }
             }
@@ -304,6 +305,53 @@ fn wait_for_flow(
         }
         if node.wait(Duration::from_millis(5)).is_err() {
             return false;
+        }
+    }
+}
+
+/// How often a paced live stream looks for new subscribers between frame sets.
+const CONNECTION_CHECK: Duration = Duration::from_millis(20);
+
+/// Hands a live stream's frame history to subscribers as they arrive (a restarted flow
+/// stage), and wakes them: history alone notifies nobody, and the next frame set may be a
+/// sixth of a second away.
+#[derive(Default)]
+struct HistoryHandOut {
+    subscribers: usize,
+}
+
+impl HistoryHandOut {
+    fn serve(&mut self, frames: &ipc::Output<[u8], FrameHeader>) -> Result<()> {
+        frames.update_connections();
+        let now = frames.subscribers();
+        if now > self.subscribers {
+            frames.notify()?;
+        }
+        self.subscribers = now;
+        Ok(())
+    }
+}
+
+/// Waits `wait` (false when asked to stop), live handing the history out meanwhile.
+fn wait_serving_history(
+    node: &ipc::IpcNode,
+    frames: &ipc::Output<[u8], FrameHeader>,
+    history: &mut HistoryHandOut,
+    mode: Mode,
+    wait: Duration,
+) -> Result<bool> {
+    if mode == Mode::Replay {
+        return Ok(node.wait(wait).is_ok());
+    }
+    let until = Instant::now() + wait;
+    loop {
+        history.serve(frames)?;
+        let left = until.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Ok(true);
+        }
+        if node.wait(left.min(CONNECTION_CHECK)).is_err() {
+            return Ok(false);
         }
     }
 }
@@ -468,6 +516,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     let mut delivered = vec![0u64; cameras.len()];
     let mut status = CameraHealth { delivered: vec![0; cameras.len()], since: Instant::now(), unix_offset };
     let mut unrecorded = 0u64;
+    let mut history = HistoryHandOut::default();
     let reference = rig.most_frontal_camera();
     while sequence < total && !ipc::stop_requested() {
         for (k, camera) in cameras.iter_mut().enumerate() {
@@ -583,6 +632,9 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         if ended {
             tracing::info!("every camera's source has ended");
             break;
+        }
+        if args.mode == Mode::Live {
+            history.serve(&frames)?;
         }
         if node.wait(Duration::from_millis(2)).is_err() {
             return Ok(());
