@@ -451,6 +451,12 @@ def run_scenario(fault, source, mode, trials, rng, workdir):
     for r in records:
         if "t_fault" in r:
             r["frames_lost"] = lost_between(result, timed, r["t_fault"], r["t_from"] + (r["recovery_s"] or 0))
+    # A restart logged after the trial's fault and before the next one's (the first record
+    # after a fault can be one already in flight, before the launcher has logged anything).
+    faults_at = [r["t_fault"] for r in records if "t_fault" in r] + [float("inf")]
+    for r, t_next in zip([r for r in records if "t_fault" in r], faults_at[1:]):
+        at = run.first_log_after(r["t_fault"], "restarting it")
+        r["restarted"] = at is not None and at < t_next
     leftover = sorted(shm_files() - before)
     gave_up = "giving up" in run.text()
     for r in records:

@@ -679,3 +679,56 @@ fn a_stage_stopped_and_continued_goes_on_without_a_restart() {
     let text = log.text();
     assert!(!text.contains("restarting it"), "a stopped stage is not a dead one:\n{text}");
 }
+
+#[test]
+fn a_paced_ingest_and_the_launcher_stopped_and_continued_go_on_without_a_restart() {
+    let _one = serial();
+    let prefix = unique_prefix("sigstop-ingest");
+    let dir = tempfile::tempdir().unwrap();
+    let rec_dir = render_preset(dir.path(), "signer-3cam", 30, Some((160, 120)));
+    let out = dir.path().join("t.jsonl");
+    let mut run = launcher(&[
+        "--recording",
+        str(&rec_dir),
+        "--mode",
+        "live",
+        "--pace",
+        "recorded",
+        "--loop",
+        "--services",
+        &prefix,
+        "--out",
+        str(&out),
+    ]);
+    let log = Log::capture(&mut run);
+    let started = Instant::now();
+    while lines_in(&out) < 3 {
+        assert!(started.elapsed() < Duration::from_secs(120), "the pipeline publishes:\n{}", log.text());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // A paced ingest sleeps between frame sets most of the time, as the launcher does between
+    // its checks: a SIGCONT then cuts a sleep short, which both once took for Ctrl-C.
+    for target in ["ingest", "ingest", "ingest", "launcher", "launcher"] {
+        let pid = match target {
+            "ingest" => pids_of("handflow-ingest", &prefix)[0],
+            _ => run.id() as i32,
+        };
+        let pid = nix::unistd::Pid::from_raw(pid);
+        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGSTOP).unwrap();
+        std::thread::sleep(Duration::from_millis(600));
+        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGCONT).unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    let before = lines_in(&out);
+    let resumed = Instant::now();
+    while lines_in(&out) <= before {
+        assert!(resumed.elapsed() < Duration::from_secs(30), "trajectories go on:\n{}", log.text());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(run.try_wait().unwrap().is_none(), "the launcher is still running:\n{}", log.text());
+    let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(run.id() as i32), nix::sys::signal::Signal::SIGINT);
+    wait_with_timeout(&mut run, Duration::from_secs(30));
+    let text = log.text();
+    assert!(!text.contains("restarting it"), "a stopped stage is not a dead one:\n{text}");
+    assert_eq!(text.matches("interrupted: stopping").count(), 1, "only the final Ctrl-C stops the launcher:\n{text}");
+}

@@ -337,7 +337,7 @@ impl<P: ?Sized + fmt::Debug + IceoryxSend + 'static, H: fmt::Debug + ZeroCopySen
     pub fn wait_for_subscribers(&self, node: &Node<Ipc>, count: usize, timeout: Duration) -> bool {
         let started = Instant::now();
         while self.subscribers() < count {
-            if started.elapsed() > timeout || node.wait(Duration::from_millis(5)).is_err() {
+            if started.elapsed() > timeout || !nap(node, Duration::from_millis(5)) {
                 return false;
             }
         }
@@ -406,6 +406,22 @@ fn publisher_builder_settings<P: ?Sized + fmt::Debug + IceoryxSend, H: fmt::Debu
                 BackpressureAction::Retry
             }),
         Mode::Live => builder.backpressure_strategy(BackpressureStrategy::DiscardData),
+    }
+}
+
+/// Sleeps for `duration` on `node`; false once the stage is asked to stop (SIGINT or
+/// SIGTERM). Any other signal cuts the sleep short without ending the stage: iceoryx2 reports
+/// SIGCONT after a SIGSTOP as an interrupt, and a stage that took it for Ctrl-C ended with
+/// status 0 in the middle of a stream (found by the fault campaign's stop-ingest).
+pub fn nap(node: &Node<Ipc>, duration: Duration) -> bool {
+    use std::sync::atomic::Ordering;
+    match node.wait(duration) {
+        Ok(()) => true,
+        Err(iceoryx2::node::NodeWaitFailure::Interrupt) if !stop_requested() => true,
+        Err(_) => {
+            STOP_REQUESTED.store(true, Ordering::Relaxed);
+            false
+        }
     }
 }
 
@@ -838,7 +854,7 @@ pub fn wait_for_rig(node: &IpcNode, names: &ServiceNames) -> Result<Option<(RigH
             tracing::info!("waiting for the rig calibration on `{name}`");
             announced = true;
         }
-        if node.wait(Duration::from_millis(10)).is_err() {
+        if !nap(node, Duration::from_millis(10)) {
             return Ok(None);
         }
     }

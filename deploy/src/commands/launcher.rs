@@ -499,7 +499,7 @@ fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline, progress: 
     let (mut ingest, mut publish) = (None::<StreamProgress>, None::<StreamProgress>);
     loop {
         // Wakes on SIGINT/SIGTERM as well as every 20 ms.
-        if node.wait(Duration::from_millis(20)).is_err() {
+        if !ipc::nap(node, Duration::from_millis(20)) {
             tracing::info!("interrupted: stopping every stage");
             return Ok(false);
         }

@@ -189,7 +189,7 @@ fn open_when_ready<T>(
             }
             Err(_) => {}
         }
-        if node.wait(Duration::from_millis(100)).is_err() {
+        if !ipc::nap(node, Duration::from_millis(100)) {
             bail!("interrupted before `{name}` appeared");
         }
     }

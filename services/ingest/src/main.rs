@@ -303,7 +303,7 @@ fn wait_for_flow(
             tracing::info!("waiting for a subscriber on `{}`", frames.name());
             announced = true;
         }
-        if node.wait(Duration::from_millis(5)).is_err() {
+        if !ipc::nap(node, Duration::from_millis(5)) {
             return false;
         }
     }
@@ -341,7 +341,7 @@ fn wait_serving_history(
     wait: Duration,
 ) -> Result<bool> {
     if mode == Mode::Replay {
-        return Ok(node.wait(wait).is_ok());
+        return Ok(ipc::nap(node, wait));
     }
     let until = Instant::now() + wait;
     loop {
@@ -350,7 +350,7 @@ fn wait_serving_history(
         if left.is_zero() {
             return Ok(true);
         }
-        if node.wait(left.min(CONNECTION_CHECK)).is_err() {
+        if !ipc::nap(node, left.min(CONNECTION_CHECK)) {
             return Ok(false);
         }
     }
@@ -374,7 +374,7 @@ fn end_stream(
     end.send().context("sending end of stream")?;
     frames.notify()?;
     tracing::info!("end of stream after {total} frame sets; waiting to be stopped");
-    while node.wait(Duration::from_millis(100)).is_ok() {
+    while ipc::nap(node, Duration::from_millis(100)) {
         rig.update_connections();
     }
     Ok(())
@@ -636,7 +636,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         if args.mode == Mode::Live {
             history.serve(&frames)?;
         }
-        if node.wait(Duration::from_millis(2)).is_err() {
+        if !ipc::nap(&node, Duration::from_millis(2)) {
             return Ok(());
         }
     }

@@ -143,9 +143,19 @@ impl<W: Write> JsonLinesSink<W> {
     /// Appends one record, as one write of the whole line: a process killed meanwhile
     /// leaves the line whole or absent.
     pub fn write(&mut self, record: &TrajectoryRecord) -> std::io::Result<()> {
+        self.write_line(&Self::line(record)?)
+    }
+
+    /// A record's line, newline included.
+    pub fn line(record: &TrajectoryRecord) -> std::io::Result<Vec<u8>> {
         let mut line = serde_json::to_vec(record)?;
         line.push(b'\n');
-        self.out.write_all(&line)?;
+        Ok(line)
+    }
+
+    /// Appends a line made by [`JsonLinesSink::line`], as one write.
+    pub fn write_line(&mut self, line: &[u8]) -> std::io::Result<()> {
+        self.out.write_all(line)?;
         self.out.flush()
     }
 

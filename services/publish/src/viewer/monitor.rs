@@ -138,7 +138,7 @@ pub fn run(
                 *lock(&shared.cameras) = camera_rows(&set);
             }
         }
-        if node.wait(POLL).is_err() {
+        if !ipc::nap(&node, POLL) {
             break;
         }
     }
