@@ -404,11 +404,23 @@ def run_scenario(fault, source, mode, trials, rng, workdir):
                 t_from = time.monotonic()
             else:
                 raise ValueError(fault)
-            # Recovered: a record written after the fault ended (within 30 s).
+            # Recovered: a record written after the fault ended (within 30 s). After a kill,
+            # a record written by the stages downstream from what they already held is not
+            # the killed stage back: the record must follow the launcher's `started` line
+            # for its replacement.
             deadline = t_from + 30
             t_back = None
             while time.monotonic() < deadline:
-                t_back = follower.first_after(t_from)
+                after = t_from
+                if fault.startswith("kill-"):
+                    started_at = run.first_log_after(t_fault, f"started {fault[len('kill-'):]} (pid")
+                    if started_at is None:
+                        if run.proc.poll() is not None:
+                            break
+                        time.sleep(0.005)
+                        continue
+                    after = started_at
+                t_back = follower.first_after(after)
                 if t_back is not None or run.proc.poll() is not None:
                     break
                 time.sleep(0.005)
