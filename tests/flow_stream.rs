@@ -14,13 +14,19 @@ use handflow_ingest::Recording;
 
 const FRAMES: u32 = 26;
 
-fn estimated_frames(configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>, first: u64) -> Vec<u64> {
-    let dir = tempfile::tempdir().unwrap();
-    let rec = Recording::open(render_preset(dir.path(), "signer-3cam", FRAMES, Some((160, 120)))).unwrap();
+/// `FRAMES` frame sets of `signer-3cam` rendered small into `dir`, and a stream engine for its rig.
+fn rendered_recording_and_engine(dir: &std::path::Path) -> (Recording, SceneFlowEngine) {
+    let rec = Recording::open(render_preset(dir, "signer-3cam", FRAMES, Some((160, 120)))).unwrap();
     let rig = rec.rig();
     let reference = rig.most_frontal_camera();
     let config = stream_engine_config(Variant::Handflow, None, rec.frame_rate(), &rig.cameras, reference);
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference).unwrap();
+    (rec, engine)
+}
+
+fn estimated_frames(configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>, first: u64) -> Vec<u64> {
+    let dir = tempfile::tempdir().unwrap();
+    let (rec, engine) = rendered_recording_and_engine(dir.path());
     let mut stream = configure(FlowStream::new(engine));
     let mut buf = vec![0u8; rec.frame_set_len()];
     let mut seen = Vec::new();
@@ -84,11 +90,7 @@ fn a_stream_joined_part_way_estimates_from_its_second_frame() {
 /// `first`, and whether the second carried the first's posterior.
 fn first_two_estimates(join: bool, first: u64) -> (u64, u64, bool) {
     let dir = tempfile::tempdir().unwrap();
-    let rec = Recording::open(render_preset(dir.path(), "signer-3cam", FRAMES, Some((160, 120)))).unwrap();
-    let rig = rec.rig();
-    let reference = rig.most_frontal_camera();
-    let config = stream_engine_config(Variant::Handflow, None, rec.frame_rate(), &rig.cameras, reference);
-    let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference).unwrap();
+    let (rec, engine) = rendered_recording_and_engine(dir.path());
     let mut stream = FlowStream::new(engine).with_frame_rate(rec.frame_rate());
     if join {
         stream.joining_mid_stream();

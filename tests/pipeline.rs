@@ -647,6 +647,25 @@ fn stages_end_when_their_launcher_is_killed() {
     }
 }
 
+/// Stops process `pid` (SIGSTOP) for `stopped`, continues it and gives it a moment.
+fn stop_and_continue(pid: i32, stopped: Duration) {
+    let pid = nix::unistd::Pid::from_raw(pid);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGSTOP).unwrap();
+    std::thread::sleep(stopped);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGCONT).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+}
+
+/// Waits (30 s at most) until `out` holds more lines than now.
+fn wait_for_more_lines(out: &Path, log: &Log) {
+    let before = lines_in(out);
+    let resumed = Instant::now();
+    while lines_in(out) <= before {
+        assert!(resumed.elapsed() < Duration::from_secs(30), "trajectories go on:\n{}", log.text());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 #[test]
 fn a_stage_stopped_and_continued_goes_on_without_a_restart() {
     let _one = serial();
@@ -662,18 +681,9 @@ fn a_stage_stopped_and_continued_goes_on_without_a_restart() {
         std::thread::sleep(Duration::from_millis(100));
     }
     for stage in ["handflow-publish", "handflow-cluster", "handflow-flow"] {
-        let pid = nix::unistd::Pid::from_raw(pids_of(stage, &prefix)[0]);
-        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGSTOP).unwrap();
-        std::thread::sleep(Duration::from_millis(700));
-        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGCONT).unwrap();
-        std::thread::sleep(Duration::from_millis(300));
+        stop_and_continue(pids_of(stage, &prefix)[0], Duration::from_millis(700));
     }
-    let before = lines_in(&out);
-    let resumed = Instant::now();
-    while lines_in(&out) <= before {
-        assert!(resumed.elapsed() < Duration::from_secs(30), "trajectories go on:\n{}", log.text());
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    wait_for_more_lines(&out, &log);
     let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(run.id() as i32), nix::sys::signal::Signal::SIGINT);
     wait_with_timeout(&mut run, Duration::from_secs(30));
     let text = log.text();
@@ -713,18 +723,9 @@ fn a_paced_ingest_and_the_launcher_stopped_and_continued_go_on_without_a_restart
             "ingest" => pids_of("handflow-ingest", &prefix)[0],
             _ => run.id() as i32,
         };
-        let pid = nix::unistd::Pid::from_raw(pid);
-        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGSTOP).unwrap();
-        std::thread::sleep(Duration::from_millis(600));
-        nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGCONT).unwrap();
-        std::thread::sleep(Duration::from_millis(300));
+        stop_and_continue(pid, Duration::from_millis(600));
     }
-    let before = lines_in(&out);
-    let resumed = Instant::now();
-    while lines_in(&out) <= before {
-        assert!(resumed.elapsed() < Duration::from_secs(30), "trajectories go on:\n{}", log.text());
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    wait_for_more_lines(&out, &log);
     assert!(run.try_wait().unwrap().is_none(), "the launcher is still running:\n{}", log.text());
     let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(run.id() as i32), nix::sys::signal::Signal::SIGINT);
     wait_with_timeout(&mut run, Duration::from_secs(30));
