@@ -222,6 +222,42 @@ fn a_corrupt_frame_in_the_middle_is_reported_and_the_rest_reads() {
 }
 
 #[test]
+fn a_video_cut_before_its_index_leaves_its_camera_out_quickly_while_two_remain() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    rig(&["cam_0", "cam_1", "cam_2"], W, H).save(dir.path().join("rig.toml")).unwrap();
+    for c in 0..3 {
+        // The index (`moov`) at the end, as capture tools write it: a cut copy has none.
+        encode(c, &dir.path().join(format!("cam_{c}.mp4")), &LOSSLESS_MP4);
+    }
+    let cut = dir.path().join("cam_1.mp4");
+    let bytes = std::fs::read(&cut).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
+    let started = std::time::Instant::now();
+    let rec = Recording::open(dir.path()).unwrap();
+    let took = started.elapsed();
+    // The demuxer's error ends the probe at once: no wait for a stream that will not come.
+    assert!(took < std::time::Duration::from_secs(5), "opening took {took:?}");
+    let names: Vec<&str> = rec.rig().cameras.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, ["cam_0", "cam_2"]);
+    let note = rec.notes().iter().find(|n| n.contains("left out")).expect("a note says which camera is left out");
+    assert!(note.contains("cam_1") && note.contains("cam_1.mp4") && note.contains("2 of 3"), "{note}");
+    assert_eq!(rec.len(), FRAMES as usize);
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    let info = rec.read_frame_into(3, false, &mut buf).unwrap();
+    assert_eq!(info.frame, 3);
+    assert_eq!(&buf[(W * H * 3) as usize..], pixels(2, 3).as_raw().as_slice(), "the second view is cam_2's");
+
+    // With only one readable video left there is nothing to replay: the cut camera's error.
+    std::fs::remove_file(dir.path().join("cam_2.mp4")).unwrap();
+    rig(&["cam_0", "cam_1"], W, H).save(dir.path().join("rig.toml")).unwrap();
+    let e = Recording::open(dir.path()).unwrap_err().to_string();
+    assert!(e.contains("cam_1") && e.contains("cam_1.mp4"), "{e}");
+}
+
+#[test]
 fn a_stream_without_colorimetry_decodes_as_ffmpeg_decodes_it() {
     if !have_ffmpeg() {
         return;

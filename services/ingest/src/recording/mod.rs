@@ -752,8 +752,8 @@ fn open_videos(
     let files: Vec<String> = videos.iter().map(|p| images::file_name(p)).collect();
     let matched =
         camera_match::match_cameras(&names, &files).map_err(|problem| layout_error(format!("videos: {problem}")))?;
-    let paths: Vec<PathBuf> = matched.iter().map(|&k| videos[k].clone()).collect();
-    let probes: Vec<VideoProbe> = paths
+    let mut paths: Vec<PathBuf> = matched.iter().map(|&k| videos[k].clone()).collect();
+    let probed: Vec<Result<VideoProbe, RecordingError>> = paths
         .par_iter()
         .zip(rig.cameras.par_iter())
         .map(|(path, camera)| {
@@ -763,7 +763,8 @@ fn open_videos(
                 error,
             })
         })
-        .collect::<Result<_, _>>()?;
+        .collect();
+    let probes = leave_out_unreadable_cameras(&mut rig, &mut paths, probed, notes)?;
     for (camera, (probe, path)) in rig.cameras.iter_mut().zip(probes.iter().zip(&paths)) {
         let (w, h) = (probe.width, probe.height);
         if (w, h) == (camera.width, camera.height) {
@@ -856,6 +857,56 @@ fn open_videos(
         .collect::<Result<_, _>>()?;
     let codecs = probes.iter().map(|p| p.codec.clone()).collect();
     Ok((rig, frames, Pixels::Videos { readers, positions, codecs }))
+}
+
+/// The fewest cameras a recording is replayed with: depth needs a second view.
+const MIN_CAMERAS: usize = 2;
+
+/// Leaves the cameras whose video cannot be opened (a file cut before its index, not a video
+/// at all) out of the rig, as a live rig goes on without a camera that fails, while at least
+/// [`MIN_CAMERAS`] remain; each one left out is a note naming camera, file and cause. With
+/// fewer left, the first camera's error is the recording's.
+fn leave_out_unreadable_cameras(
+    rig: &mut Rig,
+    paths: &mut Vec<PathBuf>,
+    probed: Vec<Result<VideoProbe, RecordingError>>,
+    notes: &mut Vec<String>,
+) -> Result<Vec<VideoProbe>, RecordingError> {
+    let readable = probed.iter().filter(|p| p.is_ok()).count();
+    let mut probes = Vec::with_capacity(readable);
+    let mut kept = Vec::with_capacity(readable);
+    let mut left_out = Vec::new();
+    for (index, result) in probed.into_iter().enumerate() {
+        match result {
+            Ok(probe) => {
+                probes.push(probe);
+                kept.push(index);
+            }
+            Err(error) if readable < MIN_CAMERAS => return Err(error),
+            Err(error) => left_out.push(error.to_string()),
+        }
+    }
+    if left_out.is_empty() {
+        return Ok(probes);
+    }
+    for problem in left_out {
+        notes.push(format!(
+            "{problem}: this camera is left out, the recording is replayed with the other {readable} of {}",
+            rig.cameras.len()
+        ));
+    }
+    keep_indices(&mut rig.cameras, &kept);
+    keep_indices(paths, &kept);
+    Ok(probes)
+}
+
+/// Keeps the items at `kept` (ascending indices), in order.
+fn keep_indices<T>(items: &mut Vec<T>, kept: &[usize]) {
+    let mut index = 0;
+    items.retain(|_| {
+        index += 1;
+        kept.binary_search(&(index - 1)).is_ok()
+    });
 }
 
 /// Frame sets of a caliscope session: camera `cam_N` (or the camera matched to the number N)

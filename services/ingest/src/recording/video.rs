@@ -28,6 +28,10 @@ use super::yuv::{self, ColourMatrix};
 
 /// How long a pull may wait for the decoder before the file is declared stuck.
 const PULL_TIMEOUT_S: u64 = 20;
+/// Pulls wait in slices this long and look at the bus between them: a demuxer that failed
+/// (a file cut before its index) says so on the bus at once and delivers nothing, so a pull
+/// that only waited would take the whole timeout to notice.
+const PULL_SLICE_MS: u64 = 50;
 /// Forward jumps up to this many frames are decoded through rather than seeked: cheaper
 /// than a seek, which decodes from the previous key frame anyway.
 const MAX_DECODE_THROUGH: usize = 48;
@@ -127,6 +131,49 @@ pub(crate) fn bus_error(pipeline: &gst::Pipeline) -> Option<String> {
     None
 }
 
+/// What a pull got: a sample, the end of the stream, or nothing, with the pipeline's error
+/// when it reported one.
+enum Pulled {
+    Sample(gst::Sample),
+    Eos,
+    Stopped(Option<String>),
+}
+
+/// Pulls the next sample, giving up as soon as the pipeline reports an error or after
+/// [`PULL_TIMEOUT_S`] without one.
+fn pull_sample(pipeline: &gst::Pipeline, sink: &gst_app::AppSink) -> Pulled {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(PULL_TIMEOUT_S);
+    loop {
+        if let Some(sample) = sink.try_pull_sample(gst::ClockTime::from_mseconds(PULL_SLICE_MS)) {
+            return Pulled::Sample(sample);
+        }
+        if sink.is_eos() {
+            return Pulled::Eos;
+        }
+        if let Some(problem) = bus_error(pipeline) {
+            // Samples queued before the error are still the video's.
+            return match sink.try_pull_sample(gst::ClockTime::ZERO) {
+                Some(sample) => {
+                    pending_error(pipeline, problem);
+                    Pulled::Sample(sample)
+                }
+                None => Pulled::Stopped(Some(problem)),
+            };
+        }
+        if std::time::Instant::now() >= deadline {
+            return Pulled::Stopped(None);
+        }
+    }
+}
+
+/// Puts an error back on the bus for the next pull to find.
+fn pending_error(pipeline: &gst::Pipeline, problem: String) {
+    if let Some(bus) = pipeline.bus() {
+        let error = gst::message::Error::builder(gst::CoreError::Failed, &problem).build();
+        let _ = bus.post(error);
+    }
+}
+
 /// A source and a demuxing or decoding bin whose video pad is linked to `sink` once known.
 fn source_into(
     pipeline: &gst::Pipeline,
@@ -187,8 +234,8 @@ pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
     let mut codec = String::new();
     let mut fallback_interval: Option<gst::ClockTime> = None;
     loop {
-        match sink.try_pull_sample(gst::ClockTime::from_seconds(PULL_TIMEOUT_S)) {
-            Some(sample) => {
+        match pull_sample(&pipeline, &sink) {
+            Pulled::Sample(sample) => {
                 if codec.is_empty() {
                     if let Some(s) = sample.caps().and_then(|c| c.structure(0)) {
                         codec = s.name().to_string();
@@ -217,9 +264,9 @@ pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
                     }
                 }
             }
-            None if sink.is_eos() => break,
-            None => {
-                let problem = bus_error(&pipeline).unwrap_or_else(|| "the demuxer stopped delivering packets".into());
+            Pulled::Eos => break,
+            Pulled::Stopped(problem) => {
+                let problem = problem.unwrap_or_else(|| "the demuxer stopped delivering packets".into());
                 stop(&pipeline);
                 if times.is_empty() {
                     return Err(open_error(format!("not a readable video: {problem}")));
@@ -387,13 +434,13 @@ impl VideoReader {
             return Ok(Some(pending));
         }
         loop {
-            let Some(sample) = self.sink.try_pull_sample(gst::ClockTime::from_seconds(PULL_TIMEOUT_S)) else {
-                if self.sink.is_eos() {
-                    return Ok(None);
+            let sample = match pull_sample(&self.pipeline, &self.sink) {
+                Pulled::Sample(sample) => sample,
+                Pulled::Eos => return Ok(None),
+                Pulled::Stopped(problem) => {
+                    let problem = problem.unwrap_or_else(|| "the decoder stopped delivering frames".into());
+                    return Err(self.frame_error(problem));
                 }
-                let problem =
-                    bus_error(&self.pipeline).unwrap_or_else(|| "the decoder stopped delivering frames".into());
-                return Err(self.frame_error(problem));
             };
             let Some(pts) = sample.buffer().and_then(|b| b.pts()) else { continue };
             let pts = stream_time(&sample, pts);
