@@ -239,6 +239,50 @@ fn killing_ingest_mid_stream_resumes_where_the_stream_was() {
     eprintln!("ingest killed and resumed; frames lost: {missing:?}");
 }
 
+#[test]
+fn a_restarted_replay_ingest_waits_for_a_busy_flow_stage_instead_of_skipping_frame_sets() {
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 120u32;
+    let rec_dir = render_preset(dir.path(), "signer-3cam", frames, None);
+    let out = dir.path().join("trajectories.jsonl");
+    let prefix = unique_prefix("restarted-ingest-busy-flow");
+    // Replay at full speed: the new ingest could send far faster than flow estimates.
+    let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
+    let log = Log::capture(&mut run);
+    let started = Instant::now();
+    while lines_in(&out) < 20 {
+        assert!(started.elapsed() < Duration::from_secs(120), "no trajectories:\n{}", log.text());
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    // Flow busy (stopped) while ingest dies and its replacement starts sending: flow connects
+    // to the new publisher only at its next read, a second later.
+    let flow = pids_of("handflow-flow", &prefix);
+    let ingest = pids_of("handflow-ingest", &prefix);
+    assert_eq!((flow.len(), ingest.len()), (1, 1), "one flow and one ingest of this pipeline");
+    let signal = |pid: i32, sig| nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid), sig).unwrap();
+    signal(flow[0], nix::sys::signal::Signal::SIGSTOP);
+    let killed_at = Instant::now();
+    signal(ingest[0], nix::sys::signal::Signal::SIGKILL);
+    while log.first_after(killed_at, &["resuming the stream at frame set"]).is_none() {
+        assert!(killed_at.elapsed() < Duration::from_secs(30), "ingest did not resume:\n{}", log.text());
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_secs(1));
+    signal(flow[0], nix::sys::signal::Signal::SIGCONT);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
+    let text = log.text();
+    assert!(status.success(), "the run failed:\n{text}");
+    let records = read_tracks(&out).unwrap();
+    let present: BTreeSet<u64> = records.iter().map(|r| r.frame).collect();
+    assert_eq!(present.len(), records.len(), "no frame twice");
+    let missing: BTreeSet<u64> = (1..u64::from(frames)).filter(|f| !present.contains(f)).collect();
+    assert_eq!(reported_losses(&text), missing, "every frame is published or reported lost");
+    // Lost: what the dead ingest's shared memory held (flow's buffer of 4 and the set it was
+    // reading), not what the new one sent while flow was busy (dozens before the fix).
+    assert!(missing.len() <= 5, "frames lost: {missing:?}");
+}
+
 /// Replaces a rendered recording's `rig.toml` by the same rig as caliscope writes it
 /// (`camera_array.toml`, rotations as 3x3 matrices, cameras `cam_N`), renaming the image
 /// folders to match: the calibration then reaches the stages through a conversion (the rig

@@ -201,6 +201,7 @@ fn run(args: Args) -> Result<()> {
     tracing::info!("world up {:?} ({})", up.direction.as_slice(), up.source);
     let rig = publish_rig(&node, &names, &published_rig, source.frame_rate())?;
     let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
+    let shape = FrameShape { view_count, width, height, len: frame_set_len };
     // Replay loses nothing: the flow stage must listen before a frame goes out (at the start
     // and after a restart of flow). Meanwhile late joiners get the rig.
     let wait_for_flow = || wait_for_flow(&node, &rig, &frames);
@@ -220,7 +221,8 @@ fn run(args: Args) -> Result<()> {
     );
     let interval = Duration::from_secs_f64(1.0 / source.frame_rate());
     let progress = ipc::progress_output(&node, &names, "ingest")?;
-    let resume_from = args.resume_at.filter(|&p| p > 0 && p < total);
+    // A stage killed after its last frame set resumes at the end and only ends the stream.
+    let resume_from = args.resume_at.filter(|&p| p > 0).map(|p| p.min(total));
     if let Some(position) = resume_from {
         tracing::info!("resuming the stream at frame set {position} (restarted)");
     }
@@ -241,47 +243,97 @@ fn run(args: Args) -> Result<()> {
                 }
             }
         }
-        rig.update_connections();
-        if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
-            return Ok(());
-        }
-        // The moment the frame set is taken: decoding it (unless preloaded) is part of the
-        // pipeline's latency.
-        let capture_unix_ns = ipc::unix_now_ns();
-        // Zero-initialised, so the decoder writes into plain bytes; the image is decoded
-        // into the shared memory itself.
-        let mut sample = frames.publisher.loan_slice(frame_set_len).context("loaning a frame sample")?;
-        let filled = source
-            .fill(sequence, args.looped, sample.payload_mut())
-            .with_context(|| format!("frame set {sequence}"))?;
-        let Some((frame, timestamp_s)) = filled else {
+        // Replay: until a frame set reaches flow (see below).
+        let sent = loop {
+            rig.update_connections();
+            if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
+                return Ok(());
+            }
+            match send_frame_set(&mut source, &frames, sequence, args.looped, shape)? {
+                // Replay loses nothing: a subscriber that existed before this publisher (a
+                // restarted ingest) connects to it only at its next read, which may be a
+                // second away, and until then samples beyond its buffer are skipped without
+                // blocking. The same frame set goes again once it has connected.
+                Sent::Delivered(0) if args.mode == Mode::Replay => {
+                    if !ipc::nap(&node, UNDELIVERED_RETRY) {
+                        return Ok(());
+                    }
+                }
+                sent => break sent,
+            }
+        };
+        if sent == Sent::Skipped {
             // Never sent: the publisher sees the gap in sequence numbers and counts it.
             progress.report(StreamProgress { next: sequence + 1, lost: 0 });
             continue;
-        };
-        *sample.user_header_mut() = FrameHeader {
-            protocol_version: PROTOCOL_VERSION,
-            pixel_format: PIXEL_FORMAT_RGB8,
-            sequence,
-            frame,
-            timestamp_s,
-            capture_unix_ns,
-            rig_version: 1,
-            view_count,
-            width,
-            height,
-            flags: 0,
-            missing_views: 0,
-            payload_len: frame_set_len as u64,
-        };
-        sample.send().with_context(|| format!("sending frame set {sequence}"))?;
+        }
         frames.notify()?;
         progress.report(StreamProgress { next: sequence + 1, lost: 0 });
         if sequence % 30 == 0 {
             tracing::debug!("frame set {sequence} sent");
         }
     }
-    end_stream(&node, &frames, &rig, total)
+    end_stream(&node, &frames, &rig, total, args.mode)
+}
+
+/// How long a replay waits before sending again a frame set its subscriber did not get.
+const UNDELIVERED_RETRY: Duration = Duration::from_millis(20);
+
+/// What became of a frame set.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Sent {
+    /// Sent, reaching this many subscribers.
+    Delivered(usize),
+    /// Not readable: not sent (already reported).
+    Skipped,
+}
+
+/// The frame set's shape on the wire.
+#[derive(Clone, Copy, Debug)]
+struct FrameShape {
+    view_count: u32,
+    width: u32,
+    height: u32,
+    /// Bytes of the whole set.
+    len: usize,
+}
+
+/// Reads replay position `sequence` into a loaned sample, decoded in the shared memory
+/// itself, and sends it.
+fn send_frame_set(
+    source: &mut Source,
+    frames: &ipc::Output<[u8], FrameHeader>,
+    sequence: u64,
+    looped: bool,
+    shape: FrameShape,
+) -> Result<Sent> {
+    // The moment the frame set is taken: decoding it (unless preloaded) is part of the
+    // pipeline's latency.
+    let capture_unix_ns = ipc::unix_now_ns();
+    // Zero-initialised, so the decoder writes into plain bytes.
+    let mut sample = frames.publisher.loan_slice(shape.len).context("loaning a frame sample")?;
+    let filled =
+        source.fill(sequence, looped, sample.payload_mut()).with_context(|| format!("frame set {sequence}"))?;
+    let Some((frame, timestamp_s)) = filled else {
+        return Ok(Sent::Skipped);
+    };
+    *sample.user_header_mut() = FrameHeader {
+        protocol_version: PROTOCOL_VERSION,
+        pixel_format: PIXEL_FORMAT_RGB8,
+        sequence,
+        frame,
+        timestamp_s,
+        capture_unix_ns,
+        rig_version: 1,
+        view_count: shape.view_count,
+        width: shape.width,
+        height: shape.height,
+        flags: 0,
+        missing_views: 0,
+        payload_len: shape.len as u64,
+    };
+    let delivered = sample.send().with_context(|| format!("sending frame set {sequence}"))?;
+    Ok(Sent::Delivered(delivered))
 }
 
 /// Waits until the flow stage listens on `frames` (replay loses nothing downstream: at the
@@ -363,16 +415,27 @@ fn end_stream(
     frames: &ipc::Output<[u8], FrameHeader>,
     rig: &ipc::Output<[u8], RigHeader>,
     total: u64,
+    mode: Mode,
 ) -> Result<()> {
-    let mut end = frames.publisher.loan_slice(0).context("loaning the end-of-stream sample")?;
-    *end.user_header_mut() = FrameHeader {
-        protocol_version: PROTOCOL_VERSION,
-        sequence: total,
-        flags: END_OF_STREAM,
-        ..FrameHeader::default()
-    };
-    end.send().context("sending end of stream")?;
-    frames.notify()?;
+    loop {
+        let mut end = frames.publisher.loan_slice(0).context("loaning the end-of-stream sample")?;
+        *end.user_header_mut() = FrameHeader {
+            protocol_version: PROTOCOL_VERSION,
+            sequence: total,
+            flags: END_OF_STREAM,
+            ..FrameHeader::default()
+        };
+        let delivered = end.send().context("sending end of stream")?;
+        frames.notify()?;
+        // As a frame set: a replay's flow stage must get it, however late it connects.
+        if mode == Mode::Live || delivered > 0 {
+            break;
+        }
+        if !ipc::nap(node, UNDELIVERED_RETRY) {
+            return Ok(());
+        }
+        frames.update_connections();
+    }
     tracing::info!("end of stream after {total} frame sets; waiting to be stopped");
     while ipc::nap(node, Duration::from_millis(100)) {
         rig.update_connections();
@@ -653,7 +716,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     if sync.partial_sets() > 0 {
         tracing::warn!("{} frame sets went on without a camera that had no frame for them", sync.partial_sets());
     }
-    end_stream(&node, &frames, &rig_output, sequence)
+    end_stream(&node, &frames, &rig_output, sequence, args.mode)
 }
 
 /// The live cameras' health for the `cameras` service.
