@@ -32,6 +32,11 @@ const PULL_TIMEOUT_S: u64 = 20;
 /// (a file cut before its index) says so on the bus at once and delivers nothing, so a pull
 /// that only waited would take the whole timeout to notice.
 const PULL_SLICE_MS: u64 = 50;
+/// How long a probe waits for a video's first packet: a local file's come within
+/// milliseconds, but a demuxer inside `parsebin` that fails at once sometimes has its error
+/// swallowed by the bin (seen with MP4 files cut before their index), and then nothing at
+/// all arrives.
+const FIRST_PACKET_TIMEOUT_S: u64 = 5;
 /// Forward jumps up to this many frames are decoded through rather than seeked: cheaper
 /// than a seek, which decodes from the previous key frame anyway.
 const MAX_DECODE_THROUGH: usize = 48;
@@ -140,9 +145,9 @@ enum Pulled {
 }
 
 /// Pulls the next sample, giving up as soon as the pipeline reports an error or after
-/// [`PULL_TIMEOUT_S`] without one.
-fn pull_sample(pipeline: &gst::Pipeline, sink: &gst_app::AppSink) -> Pulled {
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(PULL_TIMEOUT_S);
+/// `timeout_s` without one.
+fn pull_sample(pipeline: &gst::Pipeline, sink: &gst_app::AppSink, timeout_s: u64) -> Pulled {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(timeout_s);
     loop {
         if let Some(sample) = sink.try_pull_sample(gst::ClockTime::from_mseconds(PULL_SLICE_MS)) {
             return Pulled::Sample(sample);
@@ -234,7 +239,8 @@ pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
     let mut codec = String::new();
     let mut fallback_interval: Option<gst::ClockTime> = None;
     loop {
-        match pull_sample(&pipeline, &sink) {
+        let timeout_s = if times.is_empty() && codec.is_empty() { FIRST_PACKET_TIMEOUT_S } else { PULL_TIMEOUT_S };
+        match pull_sample(&pipeline, &sink, timeout_s) {
             Pulled::Sample(sample) => {
                 if codec.is_empty() {
                     if let Some(s) = sample.caps().and_then(|c| c.structure(0)) {
@@ -266,7 +272,16 @@ pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
             }
             Pulled::Eos => break,
             Pulled::Stopped(problem) => {
-                let problem = problem.unwrap_or_else(|| "the demuxer stopped delivering packets".into());
+                let problem = problem.unwrap_or_else(|| {
+                    if times.is_empty() {
+                        format!(
+                            "no packet within {FIRST_PACKET_TIMEOUT_S} s (an MP4 or MOV file cut before its index has \
+                             none)"
+                        )
+                    } else {
+                        "the demuxer stopped delivering packets".into()
+                    }
+                });
                 stop(&pipeline);
                 if times.is_empty() {
                     return Err(open_error(format!("not a readable video: {problem}")));
@@ -434,7 +449,7 @@ impl VideoReader {
             return Ok(Some(pending));
         }
         loop {
-            let sample = match pull_sample(&self.pipeline, &self.sink) {
+            let sample = match pull_sample(&self.pipeline, &self.sink, PULL_TIMEOUT_S) {
                 Pulled::Sample(sample) => sample,
                 Pulled::Eos => return Ok(None),
                 Pulled::Stopped(problem) => {
