@@ -238,8 +238,10 @@ fn a_video_cut_before_its_index_leaves_its_camera_out_quickly_while_two_remain()
     let started = std::time::Instant::now();
     let rec = Recording::open(dir.path()).unwrap();
     let took = started.elapsed();
-    // The demuxer's error ends the probe at once: no wait for a stream that will not come.
-    assert!(took < std::time::Duration::from_secs(5), "opening took {took:?}");
+    // The demuxer's error ends the probe at once, or (when `parsebin` swallows it, about one
+    // open in ten) the first packet's 5 s timeout: not a 20 s wait for a stream that will
+    // not come.
+    assert!(took < std::time::Duration::from_secs(10), "opening took {took:?}");
     let names: Vec<&str> = rec.rig().cameras.iter().map(|c| c.name.as_str()).collect();
     assert_eq!(names, ["cam_0", "cam_2"]);
     let note = rec.notes().iter().find(|n| n.contains("left out")).expect("a note says which camera is left out");
