@@ -2,7 +2,10 @@
 //! checked against each other ([`crate::face_fusion`]) and used to adapt each camera's
 //! model. Between detections, and when no face is found, the models keep their state.
 
+use std::cell::RefCell;
+
 use handflow_protocol::Camera;
+use rayon::prelude::*;
 
 use crate::face_fusion::{face_width_px, fuse_faces_remembering, FusedFaces, KnownFace};
 use crate::faces::{detection_bin, FaceBox, FaceDetector, Region};
@@ -35,9 +38,26 @@ pub struct AdaptationStats {
     pub seconds: f64,
 }
 
+thread_local! {
+    /// This thread's face detector: the underlying detector is not `Send`, and its settings
+    /// are fixed, so which thread searches a view does not change what is found.
+    static DETECTOR: RefCell<Option<FaceDetector>> = const { RefCell::new(None) };
+}
+
+/// Runs `f` with this thread's face detector, built at its first use.
+fn with_detector<R>(f: impl FnOnce(&mut FaceDetector) -> R) -> Result<R, String> {
+    DETECTOR.with(|cell| {
+        let mut slot = cell.borrow_mut();
+        let detector = match slot.as_mut() {
+            Some(detector) => detector,
+            None => slot.insert(FaceDetector::new()?),
+        };
+        Ok(f(detector))
+    })
+}
+
 /// Face detection and skin-model adaptation for one rig.
 pub struct SkinAdapter {
-    detector: FaceDetector,
     cameras: Vec<Camera>,
     models: Vec<SkinModel>,
     detect_every: u64,
@@ -55,8 +75,9 @@ pub struct SkinAdapter {
 impl SkinAdapter {
     /// Generic models for every camera, adapted at `rate` every `detect_every` frames.
     pub fn new(cameras: &[Camera], rate: f32, detect_every: u64) -> Result<Self, String> {
+        // The shipped model is checked once here; the threads that search build their own.
+        with_detector(|_| ())?;
         Ok(Self {
-            detector: FaceDetector::new()?,
             cameras: cameras.to_vec(),
             models: vec![SkinModel::generic(rate); cameras.len()],
             detect_every: detect_every.max(1),
@@ -123,55 +144,73 @@ impl SkinAdapter {
         let started = std::time::Instant::now();
         let full = self.stats.rounds.is_multiple_of(FULL_SEARCH_EVERY);
         let absent = |k: usize| k < 32 && missing & (1 << k) != 0;
-        let mut found = Vec::with_capacity(self.cameras.len());
-        for (k, ((view, cam), last)) in views.iter().zip(&self.cameras).zip(&self.last).enumerate() {
-            if absent(k) {
-                found.push(Vec::new());
-                continue;
-            }
-            // On binned pixels where the face's size is known: the face last seen here, else
-            // the face placed in 3D seen from this camera (a second person twice as far away
-            // may be missed; the signer is the nearest face).
-            let expected_px = match last {
-                Some(face) => face.width.min(face.height),
-                None => {
-                    self.known.as_ref().and_then(|k| face_width_px(cam, &k.centre.into(), k.width_m)).unwrap_or(0.0)
-                        as f32
+        // Where each view is searched, decided from the last round; then the searches run in
+        // parallel (on the caller's thread pool), each camera with its own detector.
+        let searches: Vec<Option<(Region, u32)>> = self
+            .cameras
+            .iter()
+            .zip(&self.last)
+            .enumerate()
+            .map(|(k, (cam, last))| {
+                if absent(k) {
+                    return None;
                 }
-            };
-            let bin = detection_bin(expected_px);
-            let region = match last {
-                Some(face) if !full => Region::around(face, SEARCH_SCALE, cam.width, cam.height),
-                // Once the face is placed in 3D, a view that neither saw it nor was lent it
-                // (turned away from it, or too far) is searched whole only on the full
-                // rounds: a whole 1280x720 view costs about 250 ms, ten regions as much.
-                None if !full && self.known.is_some() => {
-                    found.push(Vec::new());
-                    continue;
+                // On binned pixels where the face's size is known: the face last seen here,
+                // else the face placed in 3D seen from this camera (a second person twice as
+                // far away may be missed; the signer is the nearest face).
+                let expected_px = match last {
+                    Some(face) => face.width.min(face.height),
+                    None => {
+                        self.known.as_ref().and_then(|k| face_width_px(cam, &k.centre.into(), k.width_m)).unwrap_or(0.0)
+                            as f32
+                    }
+                };
+                let bin = detection_bin(expected_px);
+                match last {
+                    Some(face) if !full => Some((Region::around(face, SEARCH_SCALE, cam.width, cam.height), bin)),
+                    // Once the face is placed in 3D, a view that neither saw it nor was lent
+                    // it (turned away from it, or too far) is searched whole only on the full
+                    // rounds: a whole 1280x720 view costs about 250 ms, ten regions as much.
+                    None if !full && self.known.is_some() => None,
+                    _ => Some((Region { x: 0, y: 0, width: cam.width, height: cam.height }, bin)),
                 }
-                _ => Region { x: 0, y: 0, width: cam.width, height: cam.height },
-            };
-            found.push(self.detector.detect_in_binned(
-                view,
-                cam.width,
-                cam.height,
-                region,
-                cam.mount_quarter_turns,
-                bin,
-            ));
-        }
+            })
+            .collect();
+        let found: Vec<Vec<FaceBox>> = self
+            .cameras
+            .par_iter()
+            .zip(views.par_iter())
+            .zip(searches.par_iter())
+            .map(|((cam, view), search)| match *search {
+                Some((region, bin)) => with_detector(|detector| {
+                    detector.detect_in_binned(view, cam.width, cam.height, region, cam.mount_quarter_turns, bin)
+                })
+                .unwrap_or_else(|problem| {
+                    tracing::error!("camera `{}`: no face detector: {problem}", cam.name);
+                    Vec::new()
+                }),
+                None => Vec::new(),
+            })
+            .collect();
         let fused = fuse_faces_remembering(&self.cameras, &found, self.known.as_ref());
         self.last.clone_from(&fused.boxes);
         self.known = fused.known.or(self.known);
         self.stats.rounds += 1;
         self.stats.rejected += fused.rejected as u64;
+        let adapted: Vec<bool> = self
+            .models
+            .par_iter_mut()
+            .zip(self.cameras.par_iter())
+            .zip(views.par_iter())
+            .enumerate()
+            .map(|(c, ((model, cam), view))| {
+                let faces: Vec<_> = fused.boxes[c].into_iter().collect();
+                !absent(c) && model.adapt(view, cam.width, cam.height, &faces)
+            })
+            .collect();
         let mut changed = false;
-        for (c, cam) in self.cameras.iter().enumerate() {
-            if absent(c) {
-                continue;
-            }
-            let faces: Vec<_> = fused.boxes[c].into_iter().collect();
-            if self.models[c].adapt(views[c], cam.width, cam.height, &faces) {
+        for (c, &adapted) in adapted.iter().enumerate() {
+            if adapted {
                 changed = true;
                 if fused.transferred[c] {
                     self.stats.lent[c] += 1;

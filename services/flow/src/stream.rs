@@ -20,7 +20,7 @@ use nalgebra::{Point3, Vector3};
 use crate::face_fusion::FusedFaces;
 use crate::faces::FaceBox;
 use crate::skin::SkinModel;
-use crate::skin_adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY, FULL_SEARCH_EVERY};
+use crate::skin_adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
 use crate::{Coverage, EngineConfig, FlowError, SceneFlowEngine, Temporal, Variant};
 
 /// Camera-frame depths searched on a stream, metres: a signer is between half a metre and
@@ -37,10 +37,6 @@ pub const MODEL_LAG: u64 = 5;
 /// The time a detection round may take before its models are used, seconds (5 frames at
 /// 30 fps): about what a round of four views costs one core.
 pub const MODEL_LAG_S: f64 = 0.17;
-/// The time a round that searches every view whole ([`FULL_SEARCH_EVERY`]-th) may take
-/// before a replay uses its models, seconds: about what four 1280x720 views cost one core.
-/// A replay that gave it the ordinary lag would stop and wait for it, with a core idle.
-pub const FULL_ROUND_LAG_S: f64 = 1.0;
 /// Time between face detections in replay, seconds (10 frames at 30 fps). Faces anchor the
 /// head track as well as the skin models, so the cadence follows time, not frames: at 6 fps
 /// every 10th frame would be 1.7 s apart.
@@ -55,12 +51,6 @@ pub fn detect_every_for_rate(fps: f64) -> u64 {
 /// Frames between detecting faces and using the models for a stream at `fps`.
 pub fn model_lag_for_rate(fps: f64) -> u64 {
     frames_in(fps, MODEL_LAG_S).min(MODEL_LAG)
-}
-
-/// Frames between a whole-view search and a replay's use of its models, at `fps`
-/// ([`FULL_ROUND_LAG_S`], at least the ordinary lag).
-pub fn full_round_lag_for_rate(fps: f64) -> u64 {
-    frames_in(fps, FULL_ROUND_LAG_S).max(model_lag_for_rate(fps))
 }
 
 /// Frames in `seconds` of a stream at `fps`, rounded, at least 1 (1 for a rate that is not
@@ -358,6 +348,11 @@ fn lower_this_threads_priority() {
     }
 }
 
+/// Threads of the face worker's pool: one per core, at most one per camera.
+fn face_threads(cameras: usize) -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get()).min(cameras).max(1)
+}
+
 impl FaceWorker {
     fn new(cameras: &[Camera]) -> Self {
         let (frame_tx, frame_rx) = channel::<(u64, Vec<u8>, u32)>();
@@ -367,6 +362,14 @@ impl FaceWorker {
             .name("faces".into())
             .spawn(move || {
                 lower_this_threads_priority();
+                // The views of a round are searched in parallel on threads as low in priority
+                // as this one: a replay waiting for a round gets it from both cores, a live
+                // stream's estimates still come first.
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(face_threads(cameras.len()))
+                    .thread_name(|k| format!("faces-{k}"))
+                    .start_handler(|_| lower_this_threads_priority())
+                    .build();
                 let mut adapter = match SkinAdapter::new(&cameras, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY) {
                     Ok(a) => a,
                     Err(e) => {
@@ -376,7 +379,10 @@ impl FaceWorker {
                 };
                 for (frame, frame_set, missing) in frame_rx {
                     let views = split_views(&cameras, &frame_set);
-                    adapter.adapt_now_partial(&views, missing);
+                    match &pool {
+                        Ok(pool) => pool.install(|| adapter.adapt_now_partial(&views, missing)),
+                        Err(_) => adapter.adapt_now_partial(&views, missing),
+                    };
                     let round = FaceRound {
                         frame,
                         detections: adapter.last_detections().to_vec(),
@@ -489,11 +495,6 @@ pub struct FlowStream<M> {
     detect_from: u64,
     /// Frames between a detection and the use of its models.
     model_lag: u64,
-    /// The same for a round that searches every view whole, when waiting for models.
-    full_round_lag: u64,
-    /// Rounds sent to the face worker (it counts the same, and searches whole on every
-    /// [`FULL_SEARCH_EVERY`]-th).
-    rounds_sent: u64,
     /// Frames between the warm-up's detection rounds.
     warm_up_spacing: u64,
     /// The last face rounds applied, oldest first, each with the push index of the first
@@ -531,8 +532,6 @@ impl<M> FlowStream<M> {
             detect_every: DEFAULT_DETECT_EVERY,
             detect_from: 0,
             model_lag: MODEL_LAG,
-            full_round_lag: full_round_lag_for_rate(30.0),
-            rounds_sent: 0,
             warm_up_spacing: DEFAULT_DETECT_EVERY,
             face_rounds: VecDeque::new(),
             faces_reported: None,
@@ -568,7 +567,6 @@ impl<M> FlowStream<M> {
     pub fn with_frame_rate(mut self, fps: f64) -> Self {
         self.detect_every = detect_every_for_rate(fps);
         self.model_lag = model_lag_for_rate(fps);
-        self.full_round_lag = full_round_lag_for_rate(fps);
         self.warm_up_spacing = self.detect_every;
         self.warm_up_frames = warm_up_frames(self.warm_up_spacing);
         self
@@ -751,14 +749,6 @@ impl<M> FlowStream<M> {
         self.skin_reported = Some((self.estimates, shares));
     }
 
-    /// Sends a frame to the face worker; true when it searches every view whole.
-    fn send_round(&mut self, k: u64, frame_set: Vec<u8>, missing: u32) -> Result<bool, StreamError> {
-        let full = self.rounds_sent.is_multiple_of(FULL_SEARCH_EVERY);
-        self.faces.send(k, frame_set, missing)?;
-        self.rounds_sent += 1;
-        Ok(full)
-    }
-
     /// Runs the warm-up on the held frames, then pushes them.
     fn release_held<E: From<StreamError>>(
         &mut self,
@@ -771,7 +761,7 @@ impl<M> FlowStream<M> {
         let rounds = if self.warm_up_frames == 0 { 0 } else { WARM_UP_ROUNDS.min(held.len()) };
         for k in 0..rounds {
             let index = (k as u64 * self.warm_up_spacing) as usize % held.len();
-            self.send_round(index as u64, held[index].1.clone(), held[index].2)?;
+            self.faces.send(index as u64, held[index].1.clone(), held[index].2)?;
             let (models, round) = self.faces.recv()?;
             self.apply_models(&models, round)?;
         }
@@ -792,11 +782,8 @@ impl<M> FlowStream<M> {
         let k = self.pushed;
         let detect = k >= self.detect_from && (k - self.detect_from).is_multiple_of(self.detect_every);
         if detect && (self.wait_for_models || self.pending_models.is_empty()) {
-            let full = self.send_round(k, frame_set.to_vec(), missing)?;
-            // A whole-view search runs beside the next frames' estimates instead of holding
-            // them up; the schedule still depends on nothing but the frames.
-            let lag = if full && self.wait_for_models { self.full_round_lag } else { self.model_lag };
-            self.pending_models.push_back(k + lag);
+            self.faces.send(k, frame_set.to_vec(), missing)?;
+            self.pending_models.push_back(k + self.model_lag);
         }
         if self.pending_models.front().is_some_and(|&due| due <= k) {
             let models = if self.wait_for_models { Some(self.faces.recv()?) } else { self.faces.try_recv()? };
