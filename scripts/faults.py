@@ -815,6 +815,8 @@ def main():
     parser.add_argument("--only", help="comma-separated faults")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--json", help="write every trial and run summary here")
+    parser.add_argument("--camera-gone-replay", action="store_true",
+                        help="camera-gone in replay mode too (a stream buffered behind a slow pipeline can hide the cut)")
     args = parser.parse_args()
     if not HANDFLOW.exists():
         sys.exit(f"{HANDFLOW} missing: cargo build --release --workspace")
@@ -847,9 +849,9 @@ def main():
                     all_trials.append(t)
                 continue
             for source, mode in scenarios:
-                if fault == "camera-gone" and mode == "replay":
+                if fault == "camera-gone" and mode == "replay" and not args.camera_gone_replay:
                     # Replay holds a lossless camera back; its network stream's buffer then
-                    # hides the cut for as long as it holds frames (not covered yet).
+                    # hides the cut for as long as it holds frames (--camera-gone-replay runs it).
                     continue
                 if fault == "camera-gone":
                     out = camera_gone_trials(source, mode, args.trials, rng, workdir)
