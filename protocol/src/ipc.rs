@@ -901,6 +901,31 @@ pub fn stage_health(node: &IpcNode, names: &ServiceNames) -> Vec<(&'static str, 
     ]
 }
 
+impl Output<[u8], FrameHeader> {
+    /// Subscribers of these frames whose node also publishes particles: the flow stage's, not
+    /// a viewer's or a tap's. A replay starts only once flow listens, whoever else does.
+    pub fn flow_subscribers(&self, node: &IpcNode, names: &ServiceNames) -> usize {
+        let Some(particles) = service_name(&names.full("particles")).ok().and_then(|name| {
+            node.service_builder(&name).publish_subscribe::<[ScenePoint]>().user_header::<ParticleHeader>().open().ok()
+        }) else {
+            return 0;
+        };
+        let mut flow_nodes = Vec::new();
+        particles.dynamic_config().list_publishers(|details| {
+            flow_nodes.push(details.node_id);
+            CallbackProgression::Continue
+        });
+        let mut count = 0;
+        self.service.dynamic_config().list_subscribers(|details| {
+            if flow_nodes.contains(&details.node_id) {
+                count += 1;
+            }
+            CallbackProgression::Continue
+        });
+        count
+    }
+}
+
 /// The rig calibration of a sample of service `name`: its header checked against the payload,
 /// the payload read as the rig's TOML.
 pub fn parse_rig(name: &str, header: &RigHeader, payload: &[u8]) -> Result<crate::Rig, IpcError> {

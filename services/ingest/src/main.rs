@@ -204,7 +204,7 @@ fn run(args: Args) -> Result<()> {
     let shape = FrameShape { view_count, width, height, len: frame_set_len };
     // Replay loses nothing: the flow stage must listen before a frame goes out (at the start
     // and after a restart of flow). Meanwhile late joiners get the rig.
-    let wait_for_flow = || wait_for_flow(&node, &rig, &frames);
+    let wait_for_flow = || wait_for_flow(&node, &names, &rig, &frames);
     if args.mode == Mode::Replay && !wait_for_flow() {
         return Ok(());
     }
@@ -246,7 +246,7 @@ fn run(args: Args) -> Result<()> {
         // Replay: until a frame set reaches flow (see below).
         let sent = loop {
             rig.update_connections();
-            if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
+            if args.mode == Mode::Replay && frames.flow_subscribers(&node, &names) == 0 && !wait_for_flow() {
                 return Ok(());
             }
             match send_frame_set(&mut source, &frames, sequence, args.looped, shape)? {
@@ -341,13 +341,16 @@ fn send_frame_set(
 /// the process is asked to stop.
 fn wait_for_flow(
     node: &ipc::IpcNode,
+    names: &ServiceNames,
     rig: &ipc::Output<[u8], RigHeader>,
     frames: &ipc::Output<[u8], FrameHeader>,
 ) -> bool {
     let mut announced = false;
     loop {
         rig.update_connections();
-        if frames.subscribers() > 0 {
+        // Flow's subscriber, not the viewer's: a replay that started for the viewer alone
+        // lost its first frame sets to a flow stage that came a moment later.
+        if frames.flow_subscribers(node, names) > 0 {
             frames.update_connections();
             return true;
         }
@@ -558,7 +561,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     );
     // Replay mode loses nothing downstream: the flow stage listens before a set goes out
     // (the cameras' frames meanwhile wait in their hand-over).
-    let wait_for_flow = || wait_for_flow(&node, &rig_output, &frames);
+    let wait_for_flow = || wait_for_flow(&node, &names, &rig_output, &frames);
     if args.mode == Mode::Replay && !wait_for_flow() {
         return Ok(());
     }
@@ -639,7 +642,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
         let carried = |present: &[bool]| present[reference] && present.iter().filter(|&&p| p).count() >= 2;
         while let Some((instant, views)) = sync.next_set_or_partial(now, stall, carried) {
             rig_output.update_connections();
-            if args.mode == Mode::Replay && frames.subscribers() == 0 && !wait_for_flow() {
+            if args.mode == Mode::Replay && frames.flow_subscribers(&node, &names) == 0 && !wait_for_flow() {
                 return Ok(());
             }
             let first = *first_instant.get_or_insert(instant);
