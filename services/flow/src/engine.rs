@@ -130,6 +130,12 @@ pub struct SceneFlowEngine {
     counts_back: Vec<u8>,
     best: Vec<Particle>,
     best_back: Vec<Particle>,
+    /// Per ray, the costs its neighbours' candidates had in the previous loop.
+    neighbour_costs: Vec<NeighbourCosts>,
+    /// Counts `iterate` calls, so a ray's `neighbour_costs` are known to be the last loop's.
+    loop_stamp: u32,
+    /// Off only in tests, to compare against matching every candidate.
+    reuse_neighbour_costs: bool,
     estimates: Vec<RayEstimate>,
     refined: Vec<RayEstimate>,
     /// Occupancy of full-resolution rays in this frame's prior (sparse mode keeps it).
@@ -247,6 +253,9 @@ impl SceneFlowEngine {
             counts_back: vec![0; rays],
             best: vec![Particle::EMPTY; rays],
             best_back: vec![Particle::EMPTY; rays],
+            neighbour_costs: vec![NeighbourCosts::default(); rays],
+            loop_stamp: 0,
+            reuse_neighbour_costs: true,
             estimates: vec![RayEstimate::default(); rays],
             refined: vec![RayEstimate::default(); rays],
             prior_counts: vec![0; rays],
@@ -803,6 +812,7 @@ impl SceneFlowEngine {
         stage: u64,
         elite_cost_valid: bool,
     ) -> u64 {
+        self.loop_stamp = self.loop_stamp.wrapping_add(if self.reuse_neighbour_costs { 1 } else { 2 });
         let n = self.config.particles_per_ray;
         let grid = &self.grids[grid_level];
         let (gw, gh) = (grid.width, grid.height);
@@ -858,6 +868,7 @@ impl SceneFlowEngine {
                 drop_worst: self.config.skin_drop_worst_view,
             }),
             best_prev: &self.best,
+            loop_stamp: self.loop_stamp,
             top_level: level + 1 == self.config.pyramid_levels,
             last,
             frame,
@@ -866,6 +877,7 @@ impl SceneFlowEngine {
         let rays = gw * gh;
         let (particles, counts) = (&mut self.particles[..rays * n], &mut self.counts[..rays]);
         let (best_out, estimates) = (&mut self.best_back[..rays], &mut self.estimates[..rays]);
+        let memos = &mut self.neighbour_costs[..rays];
         match ctx.sweep {
             // Jacobi: every ray reads its neighbours' previous best; fully parallel.
             Sweep::None => particles
@@ -873,8 +885,9 @@ impl SceneFlowEngine {
                 .zip(counts.par_iter_mut())
                 .zip(best_out.par_iter_mut())
                 .zip(estimates.par_iter_mut())
+                .zip(memos.par_iter_mut())
                 .enumerate()
-                .map(|(ray, (((p, c), b), e))| ctx.update_ray(ray, p, c, None, b, e))
+                .map(|(ray, ((((p, c), b), e), memo))| ctx.update_ray(ray, p, c, None, b, e, memo))
                 .sum(),
             // PatchMatch-style sweep along rows, rows in parallel: a good hypothesis can
             // cross the whole row in one iteration instead of one ray per iteration.
@@ -883,8 +896,9 @@ impl SceneFlowEngine {
                 .zip(counts.par_chunks_mut(gw))
                 .zip(best_out.par_chunks_mut(gw))
                 .zip(estimates.par_chunks_mut(gw))
+                .zip(memos.par_chunks_mut(gw))
                 .enumerate()
-                .map(|(y, (((prow, crow), brow), erow))| {
+                .map(|(y, ((((prow, crow), brow), erow), mrow))| {
                     let mut evals = 0;
                     for k in 0..gw {
                         let x = if reverse { gw - 1 - k } else { k };
@@ -895,7 +909,7 @@ impl SceneFlowEngine {
                             (true, _) => Some(brow[x + 1]),
                         };
                         let (p, c) = (&mut prow[x * n..(x + 1) * n], &mut crow[x]);
-                        evals += ctx.update_ray(y * gw + x, p, c, scan, &mut brow[x], &mut erow[x]);
+                        evals += ctx.update_ray(y * gw + x, p, c, scan, &mut brow[x], &mut erow[x], &mut mrow[x]);
                     }
                     evals
                 })
@@ -937,6 +951,7 @@ impl SceneFlowEngine {
                                 previous.map(|r| r[x]),
                                 &mut this_row[x],
                                 &mut estimates[row.start + x],
+                                &mut memos[row.start + x],
                             );
                         }
                         continue;
@@ -946,8 +961,11 @@ impl SceneFlowEngine {
                         .zip(counts[row.clone()].par_iter_mut())
                         .zip(this_row.par_iter_mut())
                         .zip(estimates[row.clone()].par_iter_mut())
+                        .zip(memos[row.clone()].par_iter_mut())
                         .enumerate()
-                        .map(|(x, (((p, c), b), e))| ctx.update_ray(y * gw + x, p, c, previous.map(|r| r[x]), b, e))
+                        .map(|(x, ((((p, c), b), e), memo))| {
+                            ctx.update_ray(y * gw + x, p, c, previous.map(|r| r[x]), b, e, memo)
+                        })
                         .sum::<u64>();
                 }
                 evals
@@ -1064,6 +1082,8 @@ struct IterationContext<'a> {
     /// Equation 4's factor (`skin` coverage with a positive `skin_weight`).
     skin: Option<SkinTerm<'a>>,
     best_prev: &'a [Particle],
+    /// This loop's number (see [`NeighbourCosts`]).
+    loop_stamp: u32,
     top_level: bool,
     last: bool,
     frame: u64,
@@ -1126,12 +1146,13 @@ crate::isa::vectorised_fn! {
         scan: Option<Particle>,
         best: &mut Particle,
         estimate: &mut RayEstimate,
+        memo: &mut NeighbourCosts,
     ) -> u64 {
         let have = usize::from(*count);
         let mut rng = RayRng::for_item(ctx.config.seed, ctx.frame, ctx.stage, ray as u64);
         match ctx.config.variant {
             Variant::Paper => ctx.update_ray_paper(ray, &mut particles[..have], best, estimate, &mut rng),
-            Variant::Handflow => ctx.update_ray_handflow(ray, particles, count, scan, best, estimate, &mut rng),
+            Variant::Handflow => ctx.update_ray_handflow(ray, particles, count, scan, best, estimate, memo, &mut rng),
         }
     }
 }
@@ -1140,6 +1161,7 @@ crate::isa::vectorised_fn! {
 const MAX_CANDIDATES: usize = MAX_PARTICLES_PER_RAY + 8;
 
 impl IterationContext<'_> {
+    #[allow(clippy::too_many_arguments)]
     fn update_ray(
         &self,
         ray: usize,
@@ -1148,6 +1170,7 @@ impl IterationContext<'_> {
         scan: Option<Particle>,
         best: &mut Particle,
         estimate: &mut RayEstimate,
+        memo: &mut NeighbourCosts,
     ) -> u64 {
         let have = usize::from(*count);
         if have == 0 {
@@ -1157,7 +1180,7 @@ impl IterationContext<'_> {
             }
             return 0;
         }
-        update_occupied_ray(self, ray, particles, count, scan, best, estimate)
+        update_occupied_ray(self, ray, particles, count, scan, best, estimate, memo)
     }
 
     /// The paper: diffuse every particle, weight by equation 5 (the average of the
@@ -1236,6 +1259,7 @@ impl IterationContext<'_> {
         scan: Option<Particle>,
         best: &mut Particle,
         estimate: &mut RayEstimate,
+        memo: &mut NeighbourCosts,
         rng: &mut RayRng,
     ) -> u64 {
         let n = self.config.particles_per_ray;
@@ -1273,6 +1297,7 @@ impl IterationContext<'_> {
         // Neighbour bests: candidates for propagation and, through their per-component
         // median, the consensus velocity of the smoothness term.
         let mut consensus: Option<[f32; 3]> = None;
+        let mut neighbours_from = m;
         if self.config.propagation {
             let (w, h) = (self.grid_width, self.grid_height);
             // The neighbour the sweep comes from is offered as updated this iteration
@@ -1285,6 +1310,7 @@ impl IterationContext<'_> {
             ];
             let previous = neighbours.into_iter().flatten().map(|nb| self.best_prev[nb]);
             let first = m;
+            neighbours_from = first;
             for b in previous.chain(scan) {
                 if b.is_valid() {
                     cands[m] = b;
@@ -1308,6 +1334,7 @@ impl IterationContext<'_> {
                 }));
             }
         }
+        let neighbours_to = m;
         if self.top_level {
             for _ in 0..self.config.exploration_particles {
                 cands[m] = self.space.random_particle(rng);
@@ -1322,14 +1349,21 @@ impl IterationContext<'_> {
         let mut best_k = 0;
         // The elite (slot 0) kept its cost from the previous loop on this level.
         let elite_known = self.elite_cost_valid && self.best_prev[ray].is_valid() && cands[0].cost.is_finite();
+        // The last loop's neighbour costs hold on this loop's images only on the same level.
+        let memo_known = self.elite_cost_valid && memo.stamp == self.loop_stamp.wrapping_sub(1);
         let mut evaluations = 0u64;
         for k in 0..m {
             // A neighbour's best is often the very hypothesis this ray already holds (a good
             // one spreads by propagation): the same depth and velocity on the same ray cost
             // the same, so it is evaluated once and its cost copied, bit for bit.
             if !(k == 0 && elite_known) {
-                cands[k].cost = match (0..k).find(|&j| same_hypothesis(&cands[j], &cands[k])) {
-                    Some(j) => cands[j].cost,
+                let repeated = (0..k).find(|&j| same_hypothesis(&cands[j], &cands[k])).map(|j| cands[j].cost);
+                let remembered = || {
+                    let from_neighbour = memo_known && (neighbours_from..neighbours_to).contains(&k);
+                    from_neighbour.then(|| memo.cost_of(&cands[k])).flatten()
+                };
+                cands[k].cost = match repeated.or_else(remembered) {
+                    Some(cost) => cost,
                     None => {
                         evaluations += 1;
                         let p = &cands[k];
@@ -1357,6 +1391,7 @@ impl IterationContext<'_> {
                 best_k = k;
             }
         }
+        memo.remember(&cands[neighbours_from..neighbours_to], self.loop_stamp);
         let mut weights = [0f32; MAX_CANDIDATES];
         for k in 0..m {
             weights[k] = (log_w[k] - log_w[best_k]).exp();
@@ -1382,6 +1417,42 @@ impl IterationContext<'_> {
         }
         *count = n as u8;
         evaluations
+    }
+}
+
+/// The costs one ray's neighbour candidates had in the last loop. In a converged region a
+/// neighbour's best stays the same from loop to loop, and the same hypothesis on the same ray
+/// against the same images costs the same, bit for bit: it is looked up, not matched again.
+#[derive(Clone, Copy)]
+struct NeighbourCosts {
+    /// The `iterate` call that wrote them.
+    stamp: u32,
+    len: u8,
+    entries: [Particle; MAX_NEIGHBOUR_CANDIDATES],
+}
+
+/// Neighbour candidates per ray: four neighbours' previous best and the sweep's updated one.
+const MAX_NEIGHBOUR_CANDIDATES: usize = 5;
+
+impl Default for NeighbourCosts {
+    fn default() -> Self {
+        Self { stamp: u32::MAX, len: 0, entries: [Particle::EMPTY; MAX_NEIGHBOUR_CANDIDATES] }
+    }
+}
+
+impl NeighbourCosts {
+    #[inline(always)]
+    fn cost_of(&self, candidate: &Particle) -> Option<f32> {
+        let len = usize::from(self.len);
+        self.entries[..len].iter().find(|e| same_hypothesis(e, candidate)).map(|e| e.cost)
+    }
+
+    #[inline(always)]
+    fn remember(&mut self, candidates: &[Particle], stamp: u32) {
+        let len = candidates.len().min(MAX_NEIGHBOUR_CANDIDATES);
+        self.entries[..len].copy_from_slice(&candidates[..len]);
+        self.len = len as u8;
+        self.stamp = stamp;
     }
 }
 
@@ -1568,6 +1639,50 @@ mod tests {
         // An occluder in front of the skin in one view: that view's verdict is dropped.
         assert_eq!(log_weight([1.0, -2.0], true), 1.0);
         assert_eq!(log_weight([-1.0, 0.5], true), 0.5);
+    }
+
+    #[test]
+    fn reusing_last_loops_neighbour_costs_changes_nothing_but_the_work() {
+        let cameras = vec![camera("ref", 0.0), camera("a", 0.1), camera("b", -0.1)];
+        let config = EngineConfig { pyramid_levels: 2, coarse_extra_loops: 3, ..EngineConfig::default() };
+        let mut reusing = SceneFlowEngine::new(config.clone(), cameras.clone(), 0).unwrap();
+        let mut matching_all = SceneFlowEngine::new(config, cameras, 0).unwrap();
+        matching_all.reuse_neighbour_costs = false;
+        let (mut saved, mut estimates) = (0, 0);
+        for f in 0..4 {
+            let views = [textured_view(f, 1), textured_view(f + 2, 1), textured_view(f + 4, 1)];
+            let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
+            let a = reusing.push_frame(&views).unwrap().cloned();
+            let b = matching_all.push_frame(&views).unwrap().cloned();
+            assert_eq!(a.is_some(), b.is_some());
+            if let (Some(a), Some(b)) = (a, b) {
+                assert_eq!(
+                    a.depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
+                    b.depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
+                    "frame {f}"
+                );
+                assert_eq!(a.velocity, b.velocity, "frame {f}");
+                assert_eq!(a.confidence, b.confidence, "frame {f}");
+                assert!(reusing.stats().evaluations <= matching_all.stats().evaluations);
+                saved += matching_all.stats().evaluations - reusing.stats().evaluations;
+                estimates += 1;
+            }
+        }
+        assert!(estimates >= 2 && saved > 0, "{estimates} estimates, {saved} evaluations saved");
+    }
+
+    #[test]
+    fn neighbour_costs_are_found_by_hypothesis_only() {
+        let p = Particle { depth: 1.25, velocity: [0.01, -0.02, 0.0], weight: 0.1, cost: 0.3 };
+        let q = Particle { depth: 1.5, cost: 0.7, ..p };
+        let mut memo = NeighbourCosts::default();
+        assert_eq!(memo.cost_of(&p), None);
+        memo.remember(&[p, q], 7);
+        assert_eq!((memo.stamp, memo.cost_of(&Particle { weight: 0.9, cost: f32::NAN, ..q })), (7, Some(0.7)));
+        assert_eq!(memo.cost_of(&Particle { depth: 1.0, ..p }), None);
+        // More candidates than slots: the first ones are kept.
+        memo.remember(&[q; MAX_NEIGHBOUR_CANDIDATES + 2], 8);
+        assert_eq!((usize::from(memo.len), memo.cost_of(&p)), (MAX_NEIGHBOUR_CANDIDATES, None));
     }
 
     #[test]
