@@ -1138,6 +1138,7 @@ impl SkinTerm<'_> {
 crate::isa::vectorised_fn! {
     /// One update of a ray holding particles, in the variant's formulation. Dispatched per
     /// occupied ray: the CPU check is a cached load against microseconds of matching.
+    #[allow(clippy::too_many_arguments)]
     fn update_occupied_ray(
         ctx: &IterationContext<'_>,
         ray: usize,
