@@ -251,6 +251,12 @@ impl ClusterStage {
             }
         }
         let mut tracks = self.tracker.update_anchored(t, fit.as_ref(), anchor);
+        if let Some(raw) = raw.as_ref().filter(|_| tracing::enabled!(tracing::Level::TRACE)) {
+            for (i, c) in raw.components.iter().enumerate() {
+                tracing::trace!(t, cluster = i, position = ?c.position.as_slice(), mass = c.mass, empty = c.empty, "cluster");
+            }
+            tracing::trace!(t, assigned = ?self.tracker.assigned(), "clusters measuring the tracks");
+        }
         // The head's skin is its face, a shallow cap of a nearly round object: its depth spread
         // says little about its size, so its centre comes from the spread across the view.
         if let (Some(fit), Some(raw), true) = (&fit, &raw, self.centre_correction) {
@@ -271,6 +277,15 @@ impl ClusterStage {
                 else {
                     continue;
                 };
+                tracing::trace!(
+                    t,
+                    hand = k,
+                    cluster = m.cluster,
+                    extent_m = found.extent_m,
+                    arm = found.arm,
+                    at = ?found.position.as_slice(),
+                    "hand located"
+                );
                 if found.arm {
                     // The centroid's move to the object's middle applies to the hand's part too.
                     let at = found.position + (fit.components[m.cluster].position - raw.components[m.cluster].position);
