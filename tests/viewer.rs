@@ -2,7 +2,8 @@
 //! in headless Chromium over its DevTools protocol; samples arrive, the head and hand markers
 //! move with the trajectories the publisher writes, thumbnails come for every camera, the page
 //! reconnects after the publisher is killed and restarted, and a page of another origin cannot
-//! open the viewer's WebSockets.
+//! open the viewer's WebSockets. And a replay with the viewer on (the demo) writes what
+//! `handflow track` writes.
 
 #![allow(clippy::unwrap_used)]
 
@@ -240,4 +241,58 @@ fn the_viewer_follows_a_replay_in_a_real_browser_reconnects_after_a_restart_and_
 
     drop(browser);
     drop(run);
+}
+
+/// The README's first command runs a replay with the viewer on. The viewer taps the frames
+/// too, and a replay that started for it alone lost its first frame sets to a flow stage that
+/// came a moment later: the demo's file then varied from run to run. With the viewer on, a
+/// replay must still write byte for byte what `handflow track` writes.
+#[test]
+fn a_replay_with_the_viewer_on_writes_what_track_writes() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = render_preset(dir.path(), "signer-3cam", 30, Some((320, 240)));
+    let tracked = dir.path().join("tracked.jsonl");
+    let status = Command::new(binaries_dir().join("handflow"))
+        .args(["track", "--recording"])
+        .arg(&rec)
+        .arg("--out")
+        .arg(&tracked)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success(), "`handflow track` failed");
+    for run in 0..2 {
+        let out = dir.path().join(format!("replayed-{run}.jsonl"));
+        let log = dir.path().join(format!("run-{run}.log"));
+        let mut child = Command::new(binaries_dir().join("handflow"))
+            .args(["run", "--services", &unique_prefix("viewer-replay"), "--viewer"])
+            .arg(format!("127.0.0.1:{}", free_port()))
+            .arg("--recording")
+            .arg(&rec)
+            .arg("--out")
+            .arg(&out)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        let started = Instant::now();
+        let status = loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                break status;
+            }
+            if started.elapsed() > Duration::from_secs(300) {
+                let _ = child.kill();
+                panic!("the run did not end:\n{}", std::fs::read_to_string(&log).unwrap_or_default());
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        assert!(status.success(), "the run failed:\n{}", std::fs::read_to_string(&log).unwrap_or_default());
+        assert_eq!(
+            std::fs::read_to_string(&out).unwrap(),
+            std::fs::read_to_string(&tracked).unwrap(),
+            "run {run}: the replay with the viewer on wrote other trajectories than `track`"
+        );
+    }
 }
