@@ -243,25 +243,14 @@ fn run(args: Args) -> Result<()> {
                 }
             }
         }
-        // Replay: until a frame set reaches flow (see below).
-        let sent = loop {
+        let sent = send_until_delivered(&node, args.mode, || {
             rig.update_connections();
             if args.mode == Mode::Replay && frames.flow_subscribers(&node, &names) == 0 && !wait_for_flow() {
-                return Ok(());
+                return Ok(None);
             }
-            match send_frame_set(&mut source, &frames, sequence, args.looped, shape)? {
-                // Replay loses nothing: a subscriber that existed before this publisher (a
-                // restarted ingest) connects to it only at its next read, which may be a
-                // second away, and until then samples beyond its buffer are skipped without
-                // blocking. The same frame set goes again once it has connected.
-                Sent::Delivered(0) if args.mode == Mode::Replay => {
-                    if !ipc::nap(&node, UNDELIVERED_RETRY) {
-                        return Ok(());
-                    }
-                }
-                sent => break sent,
-            }
-        };
+            send_frame_set(&mut source, &frames, sequence, args.looped, shape).map(Some)
+        })?;
+        let Some(sent) = sent else { return Ok(()) };
         if sent == Sent::Skipped {
             // Never sent: the publisher sees the gap in sequence numbers and counts it.
             progress.report(StreamProgress { next: sequence + 1, lost: 0 });
@@ -278,6 +267,28 @@ fn run(args: Args) -> Result<()> {
 
 /// How long a replay waits before sending again a frame set its subscriber did not get.
 const UNDELIVERED_RETRY: Duration = Duration::from_millis(20);
+
+/// Sends with `send` (`None`: asked to stop) and, in replay, sends again every
+/// [`UNDELIVERED_RETRY`] while it reached no subscriber. Replay loses nothing: a subscriber
+/// that existed before this publisher (a restarted ingest) connects to it only at its next
+/// read, which may be a second away, and until then samples beyond its buffer are skipped
+/// without blocking. `None` when asked to stop.
+fn send_until_delivered(
+    node: &ipc::IpcNode,
+    mode: Mode,
+    mut send: impl FnMut() -> Result<Option<Sent>>,
+) -> Result<Option<Sent>> {
+    loop {
+        match send()? {
+            Some(Sent::Delivered(0)) if mode == Mode::Replay => {
+                if !ipc::nap(node, UNDELIVERED_RETRY) {
+                    return Ok(None);
+                }
+            }
+            sent => return Ok(sent),
+        }
+    }
+}
 
 /// What became of a frame set.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -420,7 +431,9 @@ fn end_stream(
     total: u64,
     mode: Mode,
 ) -> Result<()> {
-    loop {
+    // As a frame set: a replay's flow stage must get it, however late it connects.
+    let sent = send_until_delivered(node, mode, || {
+        frames.update_connections();
         let mut end = frames.publisher.loan_slice(0).context("loaning the end-of-stream sample")?;
         *end.user_header_mut() = FrameHeader {
             protocol_version: PROTOCOL_VERSION,
@@ -430,14 +443,10 @@ fn end_stream(
         };
         let delivered = end.send().context("sending end of stream")?;
         frames.notify()?;
-        // As a frame set: a replay's flow stage must get it, however late it connects.
-        if mode == Mode::Live || delivered > 0 {
-            break;
-        }
-        if !ipc::nap(node, UNDELIVERED_RETRY) {
-            return Ok(());
-        }
-        frames.update_connections();
+        Ok(Some(Sent::Delivered(delivered)))
+    })?;
+    if sent.is_none() {
+        return Ok(());
     }
     tracing::info!("end of stream after {total} frame sets; waiting to be stopped");
     while ipc::nap(node, Duration::from_millis(100)) {
