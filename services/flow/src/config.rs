@@ -225,6 +225,12 @@ pub struct EngineConfig {
     /// Share of each ray's prior particles replaced by fresh random ones at a new frame when
     /// the previous posterior is carried over (default 0.2).
     pub fresh_fraction: f32,
+    /// `skin` coverage: also cast rays from a second reference camera (the one looking
+    /// from the most different direction, under 90 degrees, with three or more cameras) where
+    /// the reference camera cannot see: its skin whose rays run mostly outside the
+    /// reference view's image over the depth range. A hand below the reference view's image
+    /// still gets points (default false).
+    pub second_reference: bool,
 }
 
 /// Upper bound of [`EngineConfig::particles_per_ray`]: per-ray work happens in stack arrays.
@@ -269,6 +275,7 @@ impl Default for EngineConfig {
             refine_radius: 4,
             refine_colour_sigma: 0.3,
             fresh_fraction: 0.2,
+            second_reference: false,
             skin_weight: 1.0,
             skin_drop_worst_view: true,
             skin_threshold: 0.0,

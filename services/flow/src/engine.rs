@@ -136,6 +136,11 @@ pub struct SceneFlowEngine {
     loop_stamp: u32,
     /// Off only in tests, to compare against matching every candidate.
     reuse_neighbour_costs: bool,
+    /// The engine of the second reference camera ([`EngineConfig::second_reference`]).
+    companion: Option<Box<SceneFlowEngine>>,
+    /// Full-resolution pixels of the reference view whose rays stay empty: what another
+    /// engine's reference camera sees (row-major; empty: none).
+    veto: Vec<bool>,
     estimates: Vec<RayEstimate>,
     refined: Vec<RayEstimate>,
     /// Occupancy of full-resolution rays in this frame's prior (sparse mode keeps it).
@@ -233,7 +238,9 @@ impl SceneFlowEngine {
         let skin = config.coverage == Coverage::Skin;
         let skin_models = if skin { vec![SkinModel::generic(0.0); cameras.len()] } else { Vec::new() };
         let active = if skin { grids.iter().map(|g| vec![false; g.width * g.height]).collect() } else { Vec::new() };
-        Ok(Self {
+        let companion_config =
+            config.second_reference.then(|| EngineConfig { second_reference: false, ..config.clone() });
+        let mut engine = Self {
             config,
             cameras,
             reference,
@@ -256,6 +263,8 @@ impl SceneFlowEngine {
             neighbour_costs: vec![NeighbourCosts::default(); rays],
             loop_stamp: 0,
             reuse_neighbour_costs: true,
+            companion: None,
+            veto: Vec::new(),
             estimates: vec![RayEstimate::default(); rays],
             refined: vec![RayEstimate::default(); rays],
             prior_counts: vec![0; rays],
@@ -275,7 +284,21 @@ impl SceneFlowEngine {
             next_cold_start_passes: None,
             skin_maps: Default::default(),
             active,
-        })
+        };
+        if let Some(c) = companion_config {
+            if let Some(second) = second_reference_camera(&engine.cameras, reference) {
+                let mut companion = SceneFlowEngine::new(c, engine.cameras.clone(), second)?;
+                companion.veto = seen_by(
+                    &engine.cameras[second],
+                    &engine.projections[0][reference],
+                    engine.cameras[reference].width,
+                    engine.cameras[reference].height,
+                    engine.config.depth_range,
+                );
+                engine.companion = Some(Box::new(companion));
+            }
+        }
+        Ok(engine)
     }
 
     /// The per-camera skin models used by `skin` coverage (the generic prior until replaced).
@@ -297,7 +320,27 @@ impl SceneFlowEngine {
             )));
         }
         self.skin_models.clone_from_slice(models);
+        if let Some(c) = self.companion.as_mut() {
+            c.set_skin_models(models)?;
+        }
         Ok(())
+    }
+
+    /// The engine of the second reference camera, if any ([`EngineConfig::second_reference`]):
+    /// its last estimate is of the same frame as this one's. It works on this engine's
+    /// images: its own skin maps and pyramids are empty (read them from this engine).
+    pub fn companion(&self) -> Option<&SceneFlowEngine> {
+        self.companion.as_deref()
+    }
+
+    /// Whether world point `p` lies in front of the reference camera and inside its image.
+    pub fn reference_sees(&self, p: [f32; 3]) -> bool {
+        let cam = &self.cameras[self.reference];
+        let projection = &self.projections[0][self.reference];
+        projection.to_camera(p)[2] > 0.0
+            && projection.project(p).is_some_and(|[u, v]| {
+                u >= -0.5 && v >= -0.5 && u < cam.width as f32 - 0.5 && v < cam.height as f32 - 0.5
+            })
     }
 
     /// The clamped log10 skin ratio of the colour camera `camera` saw at full-resolution
@@ -362,6 +405,9 @@ impl SceneFlowEngine {
     /// the next frame estimated without a carried posterior (then the configuration's again).
     pub fn set_next_cold_start_passes(&mut self, passes: usize) {
         self.next_cold_start_passes = Some(passes);
+        if let Some(c) = self.companion.as_mut() {
+            c.set_next_cold_start_passes(passes);
+        }
     }
 
     /// Forgets every frame and the posterior (a new, unrelated stream follows).
@@ -370,6 +416,9 @@ impl SceneFlowEngine {
         self.posterior_of = None;
         self.posterior_slot = None;
         self.next_cold_start_passes = None;
+        if let Some(c) = self.companion.as_mut() {
+            c.reset();
+        }
     }
 
     /// Adds the next synchronised frame set (RGB8, one view per camera in rig order) and
@@ -441,6 +490,20 @@ impl SceneFlowEngine {
         self.ring_newest = slot;
         self.ring_len = (self.ring_len + 1).min(3);
         self.frames_pushed += 1;
+        let estimated = self.estimate_pending(started);
+        if self.companion.is_some() {
+            self.run_companion(started, |c| {
+                c.ring_newest = slot;
+                c.ring_len = (c.ring_len + 1).min(3);
+                c.frames_pushed += 1;
+                Ok(c.estimate_pending(started))
+            })?;
+        }
+        Ok(estimated.then_some(&self.field))
+    }
+
+    /// Estimates the frame the window of pushed frames completes, if any.
+    fn estimate_pending(&mut self, started: Instant) -> bool {
         let window = match self.config.temporal {
             Temporal::TwoFrame if self.ring_len >= 2 => Some(self.window(2)),
             Temporal::ForwardsBackwards if self.ring_len >= 3 => Some(self.window(3)),
@@ -452,10 +515,38 @@ impl SceneFlowEngine {
                 // work locally instead of through rayon's global injector, which allocates
                 // a block per 63 jobs sent from outside the pool.
                 rayon::scope(|_| self.estimate(w, started));
-                Ok(Some(&self.field))
+                true
             }
-            None => Ok(None),
+            None => false,
         }
+    }
+
+    /// Runs `step` on the companion engine with this engine's frames (pyramids, skin maps,
+    /// which views are there) lent to it: the same images, built once. Adds its cost to
+    /// this estimate's. While the newest frame lacks the companion's reference view, the
+    /// companion starts afresh instead.
+    fn run_companion(
+        &mut self,
+        started: Instant,
+        step: impl FnOnce(&mut SceneFlowEngine) -> Result<bool, FlowError>,
+    ) -> Result<(), FlowError> {
+        let Some(companion) = self.companion.as_mut() else { return Ok(()) };
+        if !self.present[self.ring_newest].get(companion.reference).copied().unwrap_or(true) {
+            companion.reset();
+            return Ok(());
+        }
+        std::mem::swap(&mut self.ring, &mut companion.ring);
+        std::mem::swap(&mut self.skin_maps, &mut companion.skin_maps);
+        std::mem::swap(&mut self.present, &mut companion.present);
+        let stepped = step(companion);
+        std::mem::swap(&mut self.ring, &mut companion.ring);
+        std::mem::swap(&mut self.skin_maps, &mut companion.skin_maps);
+        std::mem::swap(&mut self.present, &mut companion.present);
+        if stepped? {
+            self.stats.evaluations += companion.stats.evaluations;
+            self.stats.seconds = started.elapsed().as_secs_f64();
+        }
+        Ok(())
     }
 
     /// Ends a stream: with forwards/backwards, estimates the last frame with the two-frame
@@ -469,6 +560,14 @@ impl SceneFlowEngine {
         }
         let w = self.window(2);
         rayon::scope(|_| self.estimate(w, started));
+        if self.companion.is_some() {
+            // A flush cannot fail.
+            let newest = self.ring_newest;
+            let _ = self.run_companion(started, |c| {
+                c.ring_newest = newest;
+                Ok(c.flush().is_some())
+            });
+        }
         Some(&self.field)
     }
 
@@ -568,7 +667,13 @@ impl SceneFlowEngine {
     fn update_active(&mut self, slot: usize) {
         let threshold = self.config.skin_threshold;
         let map = &self.skin_maps[slot][self.reference];
-        self.active[0].par_iter_mut().zip(map.par_iter()).for_each(|(a, &h)| *a = h > threshold);
+        let veto = &self.veto;
+        let vetoed = |i: usize| veto.get(i).copied().unwrap_or(false);
+        self.active[0]
+            .par_iter_mut()
+            .zip(map.par_iter())
+            .enumerate()
+            .for_each(|(i, (a, &h))| *a = h > threshold && !vetoed(i));
         for l in 1..self.active.len() {
             let (fw, fh) = (self.grids[l - 1].width, self.grids[l - 1].height);
             let cw = self.grids[l].width;
@@ -589,7 +694,10 @@ impl SceneFlowEngine {
                 let (x0, y0) = ((ray % cw) * s, (ray / cw) * s);
                 let (xs, ys) = (x0..(x0 + s).min(w), y0..(y0 + s).min(h));
                 let pixels = xs.len() * ys.len();
-                let skin = ys.flat_map(|y| xs.clone().map(move |x| y * w + x)).filter(|&i| map[i] > threshold).count();
+                let skin = ys
+                    .flat_map(|y| xs.clone().map(move |x| y * w + x))
+                    .filter(|&i| map[i] > threshold && !vetoed(i))
+                    .count();
                 // At least one pixel, as on the coarser grids, however small the share.
                 *a = skin > 0 && skin as f32 >= share * pixels as f32;
             });
@@ -1558,6 +1666,58 @@ fn ray_grid(camera: &Camera, level: usize, with_rays: bool) -> RayGrid {
     RayGrid { width, height, dirs }
 }
 
+/// The camera looking from the most different direction than `reference`'s, under 90
+/// degrees (a camera behind the person sees no more of the hands), with three or more
+/// cameras: the second reference of [`EngineConfig::second_reference`].
+pub fn second_reference_camera(cameras: &[Camera], reference: usize) -> Option<usize> {
+    if cameras.len() < 3 {
+        return None;
+    }
+    let axis = |c: &Camera| c.rotation.matrix().row(2).transpose();
+    let a = axis(&cameras[reference]);
+    (0..cameras.len())
+        .filter(|&k| k != reference)
+        .map(|k| (k, a.dot(&axis(&cameras[k]))))
+        .filter(|&(_, cos)| cos > 0.0)
+        .min_by(|x, y| x.1.total_cmp(&y.1))
+        .map(|(k, _)| k)
+}
+
+/// Full-resolution pixels of `camera` whose ray, over `depth_range`, runs mostly through
+/// what the other camera (`seeing`, an image `width` x `height`) sees: at least half of
+/// its depths, spaced evenly in inverse depth, project inside that image.
+fn seen_by(camera: &Camera, seeing: &LevelProjection, width: u32, height: u32, depth_range: (f32, f32)) -> Vec<bool> {
+    const DEPTHS: usize = 16;
+    const BLOCK: usize = 4;
+    let grid = ray_grid(camera, 2, true);
+    let centre = camera.centre();
+    let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
+    let (near, far) = (1.0 / depth_range.0, 1.0 / depth_range.1);
+    let inside = |p: [f32; 3]| {
+        seeing.to_camera(p)[2] > 0.0
+            && seeing
+                .project(p)
+                .is_some_and(|[u, v]| u >= -0.5 && v >= -0.5 && u < width as f32 - 0.5 && v < height as f32 - 0.5)
+    };
+    let ray_seen: Vec<bool> = grid
+        .dirs
+        .iter()
+        .map(|&dir| {
+            let seen = (0..DEPTHS)
+                .filter(|&k| {
+                    let inverse = near + (far - near) * (k as f32 + 0.5) / DEPTHS as f32;
+                    inside(point_on_ray(origin, dir, 1.0 / inverse))
+                })
+                .count();
+            2 * seen >= DEPTHS
+        })
+        .collect();
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    (0..w * h)
+        .map(|i| ray_seen[((i / w) / BLOCK).min(grid.height - 1) * grid.width + ((i % w) / BLOCK).min(grid.width - 1)])
+        .collect()
+}
+
 #[inline(always)]
 fn point_on_ray(origin: [f32; 3], dir: [f32; 3], depth: f32) -> [f32; 3] {
     [origin[0] + depth * dir[0], origin[1] + depth * dir[1], origin[2] + depth * dir[2]]
@@ -1670,6 +1830,80 @@ mod tests {
             }
         }
         assert!(estimates >= 2 && saved > 0, "{estimates} estimates, {saved} evaluations saved");
+    }
+
+    /// A camera at `x` looking along +z turned by `yaw_deg` about the vertical axis.
+    fn turned_camera(name: &str, x: f64, yaw_deg: f64) -> Camera {
+        let k = Matrix3::new(50.0, 0.0, 15.5, 0.0, 50.0, 11.5, 0.0, 0.0, 1.0);
+        let rotation = Rotation3::from_axis_angle(&Vector3::y_axis(), yaw_deg.to_radians());
+        let translation = -(rotation * Vector3::new(x, 0.0, 0.0));
+        Camera::new(name, 32, 24, k, Distortion::default(), rotation, translation).expect("valid camera")
+    }
+
+    #[test]
+    fn the_second_reference_looks_from_the_most_different_direction_in_front() {
+        let rig = vec![
+            turned_camera("front", 0.0, 0.0),
+            turned_camera("a little aside", 0.2, 20.0),
+            turned_camera("side", 0.5, 70.0),
+            turned_camera("behind", 1.0, 150.0),
+        ];
+        assert_eq!(second_reference_camera(&rig, 0), Some(2), "the side camera, not the one behind");
+        assert_eq!(second_reference_camera(&rig[..2], 0), None, "two cameras have no third view to match in");
+        assert_eq!(second_reference_camera(&[rig[0].clone(), rig[1].clone(), rig[3].clone()], 0), Some(1));
+    }
+
+    #[test]
+    fn a_second_reference_keeps_only_rays_the_reference_view_does_not_see() {
+        let reference = camera("ref", 0.0);
+        // 0.3 m to the right, looking the same way: its left edge looks into the reference's
+        // view at every depth from 0.5 m on, its right edge never does.
+        let second = camera("second", 0.3);
+        let seeing = LevelProjection::new(&reference, 0);
+        let seen = seen_by(&second, &seeing, 32, 24, (0.5, 5.0));
+        assert_eq!(seen.len(), 32 * 24);
+        assert!(seen[12 * 32], "left edge: seen by the reference");
+        assert!(!seen[12 * 32 + 31], "right edge: beyond the reference's image");
+        let engine = SceneFlowEngine::new(
+            EngineConfig { coverage: Coverage::Skin, second_reference: true, ..EngineConfig::default() },
+            vec![reference.clone(), second, camera("third", -0.1)],
+            0,
+        )
+        .unwrap();
+        let companion = engine.companion().expect("three cameras: a second reference");
+        assert_eq!(companion.reference(), 1);
+        assert!(engine.reference_sees([0.0, 0.0, 2.0]) && !engine.reference_sees([3.0, 0.0, 2.0]));
+        assert!(!engine.reference_sees([0.0, 0.0, -2.0]), "behind the camera");
+    }
+
+    #[test]
+    fn the_companion_estimates_the_same_frame_on_the_images_it_is_lent() {
+        let cameras = vec![camera("ref", 0.0), camera("second", 0.3), camera("third", -0.1)];
+        let config = EngineConfig {
+            coverage: Coverage::Skin,
+            second_reference: true,
+            pyramid_levels: 2,
+            coarse_extra_loops: 2,
+            ..EngineConfig::default()
+        };
+        let mut engine = SceneFlowEngine::new(config, cameras, 0).unwrap();
+        for f in 0..4 {
+            let views = [textured_view(f, 1), textured_view(f + 2, 1), textured_view(f + 4, 1)];
+            let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
+            let estimated = engine.push_frame(&views).unwrap().is_some();
+            let companion = engine.companion().unwrap();
+            assert_eq!(companion.frames_pushed, engine.frames_pushed, "frame {f}");
+            if estimated {
+                assert_eq!(companion.stats().frame, engine.stats().frame, "frame {f}");
+            }
+            // Lent for the estimate and taken back: one set of images for both.
+            assert!(companion.ring.iter().all(Vec::is_empty) && companion.skin_maps.iter().all(Vec::is_empty));
+        }
+        // A frame without the companion's reference view starts it afresh; the main goes on.
+        let views = [textured_view(5, 1), vec![0; 32 * 24 * 3], textured_view(9, 1)];
+        let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
+        assert!(engine.push_frame_partial(&views, 0b010).unwrap().is_some());
+        assert_eq!(engine.companion().unwrap().ring_len, 0);
     }
 
     #[test]

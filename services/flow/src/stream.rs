@@ -129,6 +129,7 @@ pub fn stream_engine_config(
         depth_range: STREAM_DEPTH_RANGE_M,
         velocity_prior_depth: STREAM_VELOCITY_PRIOR_DEPTH,
         speed_bound: STREAM_SPEED_BOUND_M_S / fps.max(1.0) as f32,
+        second_reference: true,
         ..defaults
     }
 }
@@ -226,8 +227,15 @@ pub fn working_level_summary(config: &EngineConfig, cameras: &[Camera], referenc
         0 => String::new(),
         s => format!(", a ray every {} pixels of the level", 1u32 << s),
     };
+    let second = match crate::engine::second_reference_camera(cameras, reference) {
+        Some(k) if config.second_reference => {
+            format!("; where `{}` cannot see, rays from `{}`", cam.name, cameras[k].name)
+        }
+        _ => String::new(),
+    };
     format!(
-        "working level {} ({}x{} rays{rays} on `{}`): palms about {:.0} px wide at full resolution, signer at {distance}",
+        "working level {} ({}x{} rays{rays} on `{}`): palms about {:.0} px wide at full resolution, signer at \
+         {distance}{second}",
         config.finest_level,
         cam.width.div_ceil(scale),
         cam.height.div_ceil(scale),
@@ -822,8 +830,23 @@ impl<M> FlowStream<M> {
 
 /// The particles of the engine's last estimate, as what clustering needs: every particle
 /// of every ray with confidence, its weight times the ray's confidence, and the skin
-/// probability of the ray's pixel.
+/// probability of the ray's pixel. Then those of the second reference's engine, if any,
+/// that the reference camera cannot see.
 pub fn scene_points(engine: &SceneFlowEngine) -> impl Iterator<Item = ScenePoint> + '_ {
+    let unseen = engine
+        .companion()
+        .into_iter()
+        .flat_map(move |companion| reference_points(companion, engine))
+        .filter(move |p| !engine.reference_sees(p.position));
+    reference_points(engine, engine).chain(unseen)
+}
+
+/// [`scene_points`] of one engine, the skin read from `images` (the engine whose frames it
+/// estimated on).
+fn reference_points<'a>(
+    engine: &'a SceneFlowEngine,
+    images: &'a SceneFlowEngine,
+) -> impl Iterator<Item = ScenePoint> + 'a {
     let field = engine.field();
     let reference = engine.reference();
     let cam = &engine.cameras()[reference];
@@ -832,7 +855,7 @@ pub fn scene_points(engine: &SceneFlowEngine) -> impl Iterator<Item = ScenePoint
         let confidence = field.confidence[ray];
         let (x, y) = ((ray % field.width) * scale + scale / 2, (ray / field.width) * scale + scale / 2);
         // The clamped log10 ratio of skin to background likelihood, as a probability.
-        let skin = engine.skin_at(reference, x, y).map_or(0.0, |r| 1.0 / (1.0 + 10f32.powf(-r)));
+        let skin = images.skin_at(reference, x, y).map_or(0.0, |r| 1.0 / (1.0 + 10f32.powf(-r)));
         engine.ray_particles(ray).iter().map(move |p| ScenePoint {
             position: engine.particle_position(ray, p),
             velocity: p.velocity,
@@ -845,10 +868,11 @@ pub fn scene_points(engine: &SceneFlowEngine) -> impl Iterator<Item = ScenePoint
 /// Number of points [`scene_points`] yields.
 pub fn scene_point_count(engine: &SceneFlowEngine) -> usize {
     let field = engine.field();
-    (0..field.width * field.height)
+    let own: usize = (0..field.width * field.height)
         .filter(|&ray| field.confidence[ray] > 0.0)
         .map(|ray| engine.ray_particles(ray).len())
-        .sum()
+        .sum();
+    own + engine.companion().map_or(0, |_| scene_points(engine).count() - own)
 }
 
 /// The confidence-weighted mean variance of a ray's particles along the ray, square metres
