@@ -80,3 +80,35 @@ fn steady_state_frames_allocate_nothing() {
         }
     }
 }
+
+#[test]
+fn a_second_reference_on_lent_images_allocates_nothing_either() {
+    let config = EngineConfig {
+        temporal: Temporal::ForwardsBackwards,
+        coverage: handflow_flow::Coverage::Skin,
+        second_reference: true,
+        depth_range: (2.0, 20.0),
+        speed_bound: 0.2,
+        ..EngineConfig::for_variant(Variant::Handflow)
+    };
+    let cameras = vec![camera("a", 0.0), camera("b", 0.5), camera("c", -0.5)];
+    let mut engine = SceneFlowEngine::new(config, cameras, 0).expect("engine");
+    assert!(engine.companion().is_some());
+    let frames: Vec<Vec<Vec<u8>>> = (0..6)
+        .map(|k| {
+            let mut views = frame(k);
+            views.push(views[0].clone());
+            views
+        })
+        .collect();
+    let views: Vec<Vec<&[u8]>> = frames.iter().map(|f| f.iter().map(Vec::as_slice).collect()).collect();
+    for v in &views[..4] {
+        engine.push_frame(v).expect("push");
+    }
+    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    for k in 0..10 {
+        assert!(engine.push_frame(&views[4 + k % 2]).expect("push").is_some());
+    }
+    let during = ALLOCATIONS.load(Ordering::Relaxed) - before;
+    assert!(during <= 2, "{during} allocations in ten steady-state frames");
+}
