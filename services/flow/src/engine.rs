@@ -336,11 +336,7 @@ impl SceneFlowEngine {
     /// Whether world point `p` lies in front of the reference camera and inside its image.
     pub fn reference_sees(&self, p: [f32; 3]) -> bool {
         let cam = &self.cameras[self.reference];
-        let projection = &self.projections[0][self.reference];
-        projection.to_camera(p)[2] > 0.0
-            && projection.project(p).is_some_and(|[u, v]| {
-                u >= -0.5 && v >= -0.5 && u < cam.width as f32 - 0.5 && v < cam.height as f32 - 0.5
-            })
+        in_image(&self.projections[0][self.reference], cam.width, cam.height, p)
     }
 
     /// The clamped log10 skin ratio of the colour camera `camera` saw at full-resolution
@@ -1688,17 +1684,15 @@ pub fn second_reference_camera(cameras: &[Camera], reference: usize) -> Option<u
 /// its depths, spaced evenly in inverse depth, project inside that image.
 fn seen_by(camera: &Camera, seeing: &LevelProjection, width: u32, height: u32, depth_range: (f32, f32)) -> Vec<bool> {
     const DEPTHS: usize = 16;
-    const BLOCK: usize = 4;
-    let grid = ray_grid(camera, 2, true);
+    // Decided per ray of level 2 (a 4x4-pixel block): the mask follows the geometry, which
+    // changes slowly across the image.
+    const LEVEL: usize = 2;
+    let block = 1usize << LEVEL;
+    let grid = ray_grid(camera, LEVEL, true);
     let centre = camera.centre();
     let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
     let (near, far) = (1.0 / depth_range.0, 1.0 / depth_range.1);
-    let inside = |p: [f32; 3]| {
-        seeing.to_camera(p)[2] > 0.0
-            && seeing
-                .project(p)
-                .is_some_and(|[u, v]| u >= -0.5 && v >= -0.5 && u < width as f32 - 0.5 && v < height as f32 - 0.5)
-    };
+    let inside = |p: [f32; 3]| in_image(seeing, width, height, p);
     let ray_seen: Vec<bool> = grid
         .dirs
         .iter()
@@ -1714,8 +1708,17 @@ fn seen_by(camera: &Camera, seeing: &LevelProjection, width: u32, height: u32, d
         .collect();
     let (w, h) = (camera.width as usize, camera.height as usize);
     (0..w * h)
-        .map(|i| ray_seen[((i / w) / BLOCK).min(grid.height - 1) * grid.width + ((i % w) / BLOCK).min(grid.width - 1)])
+        .map(|i| ray_seen[((i / w) / block).min(grid.height - 1) * grid.width + ((i % w) / block).min(grid.width - 1)])
         .collect()
+}
+
+/// Whether world point `p` lies in front of the camera of `projection` and inside its
+/// `width` x `height` image (pixel centres at integers).
+fn in_image(projection: &LevelProjection, width: u32, height: u32, p: [f32; 3]) -> bool {
+    projection.to_camera(p)[2] > 0.0
+        && projection
+            .project(p)
+            .is_some_and(|[u, v]| u >= -0.5 && v >= -0.5 && u < width as f32 - 0.5 && v < height as f32 - 0.5)
 }
 
 #[inline(always)]

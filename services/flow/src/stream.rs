@@ -833,12 +833,16 @@ impl<M> FlowStream<M> {
 /// probability of the ray's pixel. Then those of the second reference's engine, if any,
 /// that the reference camera cannot see.
 pub fn scene_points(engine: &SceneFlowEngine) -> impl Iterator<Item = ScenePoint> + '_ {
-    let unseen = engine
-        .companion()
-        .into_iter()
-        .flat_map(move |companion| reference_points(companion, engine))
-        .filter(move |p| !engine.reference_sees(p.position));
+    let unseen = engine.companion().into_iter().flat_map(move |companion| unseen_points(engine, companion));
     reference_points(engine, engine).chain(unseen)
+}
+
+/// The points of `engine`'s companion that `engine`'s reference camera cannot see.
+fn unseen_points<'a>(
+    engine: &'a SceneFlowEngine,
+    companion: &'a SceneFlowEngine,
+) -> impl Iterator<Item = ScenePoint> + 'a {
+    reference_points(companion, engine).filter(move |p| !engine.reference_sees(p.position))
 }
 
 /// [`scene_points`] of one engine, the skin read from `images` (the engine whose frames it
@@ -872,7 +876,8 @@ pub fn scene_point_count(engine: &SceneFlowEngine) -> usize {
         .filter(|&ray| field.confidence[ray] > 0.0)
         .map(|ray| engine.ray_particles(ray).len())
         .sum();
-    own + engine.companion().map_or(0, |_| scene_points(engine).count() - own)
+    // The companion's points are kept by where they lie: counted by the same filter.
+    own + engine.companion().map_or(0, |c| unseen_points(engine, c).count())
 }
 
 /// The confidence-weighted mean variance of a ray's particles along the ray, square metres

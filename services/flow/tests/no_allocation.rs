@@ -51,6 +51,20 @@ fn frame(k: usize) -> Vec<Vec<u8>> {
     (0..2).map(|cam| (0..64 * 48 * 3).map(|i| ((i * 7 + k * 13 + cam * 3) % 251) as u8).collect()).collect()
 }
 
+/// Allocations during ten steady-state frames (the last two of `frames`, alternating), after
+/// the first four sized every buffer. Each of the ten must complete an estimate.
+fn steady_state_allocations(engine: &mut SceneFlowEngine, frames: &[Vec<Vec<u8>>]) -> usize {
+    let views: Vec<Vec<&[u8]>> = frames.iter().map(|f| f.iter().map(Vec::as_slice).collect()).collect();
+    for v in &views[..4] {
+        engine.push_frame(v).expect("push");
+    }
+    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    for k in 0..10 {
+        assert!(engine.push_frame(&views[4 + k % 2]).expect("push").is_some());
+    }
+    ALLOCATIONS.load(Ordering::Relaxed) - before
+}
+
 #[test]
 fn steady_state_frames_allocate_nothing() {
     for variant in [Variant::Handflow, Variant::Paper] {
@@ -63,19 +77,10 @@ fn steady_state_frames_allocate_nothing() {
             };
             let mut engine = SceneFlowEngine::new(config, vec![camera("a", 0.0), camera("b", 0.5)], 0).expect("engine");
             let frames: Vec<Vec<Vec<u8>>> = (0..6).map(frame).collect();
-            let views: Vec<Vec<&[u8]>> = frames.iter().map(|f| f.iter().map(Vec::as_slice).collect()).collect();
-            // Warm-up: the first frames size every buffer.
-            for v in &views[..4] {
-                engine.push_frame(v).expect("push");
-            }
-            // Ten steady-state frames. rayon's global job queue allocates one block per 63
-            // jobs sent into its pool from outside (about two per frame), so at most one
-            // such allocation may fall in the window; nothing of the engine's own.
-            let before = ALLOCATIONS.load(Ordering::Relaxed);
-            for k in 0..10 {
-                assert!(engine.push_frame(&views[4 + k % 2]).expect("push").is_some());
-            }
-            let during = ALLOCATIONS.load(Ordering::Relaxed) - before;
+            // rayon's global job queue allocates one block per 63 jobs sent into its pool
+            // from outside (about two per frame), so at most one such allocation may fall in
+            // the window; nothing of the engine's own.
+            let during = steady_state_allocations(&mut engine, &frames);
             assert!(during <= 1, "{variant:?} {temporal:?}: {during} allocations in ten steady-state frames");
         }
     }
@@ -101,14 +106,6 @@ fn a_second_reference_on_lent_images_allocates_nothing_either() {
             views
         })
         .collect();
-    let views: Vec<Vec<&[u8]>> = frames.iter().map(|f| f.iter().map(Vec::as_slice).collect()).collect();
-    for v in &views[..4] {
-        engine.push_frame(v).expect("push");
-    }
-    let before = ALLOCATIONS.load(Ordering::Relaxed);
-    for k in 0..10 {
-        assert!(engine.push_frame(&views[4 + k % 2]).expect("push").is_some());
-    }
-    let during = ALLOCATIONS.load(Ordering::Relaxed) - before;
+    let during = steady_state_allocations(&mut engine, &frames);
     assert!(during <= 2, "{during} allocations in ten steady-state frames");
 }
