@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use handflow::eval::tracks::{evaluate_tracks, read_tracks};
-use handflow_e2e::{binaries_dir, render_preset, spawn_lines, unique_prefix};
+use handflow_e2e::{binaries_dir, exit_within, render_preset, spawn_lines, unique_prefix};
 use handflow_ingest::Recording;
 
 static ONE_PIPELINE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -40,17 +40,8 @@ fn run_pipeline(file: &Path, timeout: Duration) -> (bool, String) {
         let _ = stderr.read_to_string(&mut text);
         text
     });
-    let started = Instant::now();
-    let status = loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            break status;
-        }
-        if started.elapsed() > timeout {
-            let _ = child.kill();
-            panic!("the pipeline did not end within {timeout:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status =
+        exit_within(&mut child, timeout).unwrap_or_else(|| panic!("the pipeline did not end within {timeout:?}"));
     (status.success(), reader.join().unwrap())
 }
 

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use handflow::commands::track::{track_recording, TrackOptions};
 use handflow::eval::tracks::{evaluate_tracks, read_tracks};
-use handflow_e2e::{binaries_dir, pids_of, render_preset, unique_prefix};
+use handflow_e2e::{binaries_dir, exit_within, pids_of, render_preset, unique_prefix};
 use handflow_ingest::Recording;
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
 use handflow_protocol::messages::{FrameHeader, RigHeader, END_OF_STREAM, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION};
@@ -72,17 +72,7 @@ fn launcher(args: &[&str]) -> Child {
 
 /// Waits for `child` to exit, killing it after `timeout`.
 fn wait_with_timeout(child: &mut Child, timeout: Duration) -> std::process::ExitStatus {
-    let started = Instant::now();
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            return status;
-        }
-        if started.elapsed() > timeout {
-            let _ = child.kill();
-            panic!("the pipeline did not end within {timeout:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    exit_within(child, timeout).unwrap_or_else(|| panic!("the pipeline did not end within {timeout:?}"))
 }
 
 fn lines_in(path: &Path) -> usize {

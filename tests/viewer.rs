@@ -14,7 +14,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use handflow_e2e::browser::{chromium_binary, http_get, Browser};
-use handflow_e2e::{binaries_dir, pids_of, render_preset, unique_prefix};
+use handflow_e2e::{binaries_dir, exit_within, pids_of, render_preset, unique_prefix};
 use serde_json::Value;
 use tungstenite::client::IntoClientRequest;
 
@@ -277,17 +277,8 @@ fn a_replay_with_the_viewer_on_writes_what_track_writes() {
             .stderr(std::fs::File::create(&log).unwrap())
             .spawn()
             .unwrap();
-        let started = Instant::now();
-        let status = loop {
-            if let Some(status) = child.try_wait().unwrap() {
-                break status;
-            }
-            if started.elapsed() > Duration::from_secs(300) {
-                let _ = child.kill();
-                panic!("the run did not end:\n{}", std::fs::read_to_string(&log).unwrap_or_default());
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        };
+        let status = exit_within(&mut child, Duration::from_secs(300))
+            .unwrap_or_else(|| panic!("the run did not end:\n{}", std::fs::read_to_string(&log).unwrap_or_default()));
         assert!(status.success(), "the run failed:\n{}", std::fs::read_to_string(&log).unwrap_or_default());
         assert_eq!(
             std::fs::read_to_string(&out).unwrap(),

@@ -133,3 +133,18 @@ impl LineProcess {
         self.lines.try_iter().collect()
     }
 }
+
+/// Waits for `child` to exit; after `timeout` kills it and returns `None`.
+pub fn exit_within(child: &mut std::process::Child, timeout: std::time::Duration) -> Option<std::process::ExitStatus> {
+    let started = std::time::Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().expect("the child's status") {
+            return Some(status);
+        }
+        if started.elapsed() > timeout {
+            let _ = child.kill();
+            return None;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
