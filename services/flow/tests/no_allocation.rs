@@ -3,6 +3,7 @@
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Mutex, MutexGuard};
 
 use handflow_flow::{EngineConfig, SceneFlowEngine, Temporal, Variant};
 use handflow_protocol::{Camera, Distortion};
@@ -33,6 +34,15 @@ unsafe impl GlobalAlloc for CountingAllocator {
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;
+
+/// The count is process-wide and the engine allocates on rayon's threads too, so the tests of
+/// this file run one at a time, each whole: side by side, each would count the other's set-up.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn alone() -> MutexGuard<'static, ()> {
+    // A test that failed while holding the lock leaves it poisoned; the count is still sound.
+    ONE_AT_A_TIME.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
 
 fn camera(name: &str, x: f64) -> Camera {
     Camera::new(
@@ -67,6 +77,7 @@ fn steady_state_allocations(engine: &mut SceneFlowEngine, frames: &[Vec<Vec<u8>>
 
 #[test]
 fn steady_state_frames_allocate_nothing() {
+    let _alone = alone();
     for variant in [Variant::Handflow, Variant::Paper] {
         for temporal in [Temporal::TwoFrame, Temporal::ForwardsBackwards] {
             let config = EngineConfig {
@@ -88,6 +99,7 @@ fn steady_state_frames_allocate_nothing() {
 
 #[test]
 fn a_second_reference_on_lent_images_allocates_nothing_either() {
+    let _alone = alone();
     let config = EngineConfig {
         temporal: Temporal::ForwardsBackwards,
         coverage: handflow_flow::Coverage::Skin,
