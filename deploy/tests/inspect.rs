@@ -50,6 +50,15 @@ fn inspect_writes_every_layer_of_every_camera_and_a_montage() {
         png_size(&out.join("montage.png")),
         (MONTAGE_TILE_WIDTH * LAYERS.len() as u32, tile_height * cameras.len() as u32)
     );
+    // The scene points the clusters were fitted to: as many rows as the summary counts,
+    // each a finite position, velocity, weight and skin probability.
+    let csv = std::fs::read_to_string(out.join("points.csv")).unwrap();
+    let mut rows = csv.lines();
+    assert_eq!(rows.next(), Some("x,y,z,vx,vy,vz,weight,skin"));
+    let rows: Vec<Vec<f32>> = rows.map(|l| l.split(',').map(|v| v.parse().unwrap()).collect()).collect();
+    let counted = format!(", {} points", rows.len());
+    assert!(summary.lines().next().is_some_and(|l| l.ends_with(&counted)), "{counted}\n{}", describe(&r));
+    assert!(!rows.is_empty() && rows.iter().all(|r| r.len() == 8 && r.iter().all(|v| v.is_finite())));
     // The diagnostics show without HANDFLOW_LOG: skin shares and every camera's face status.
     let log = String::from_utf8_lossy(&r.stderr);
     assert!(log.contains("skin share of the image"), "{}", describe(&r));

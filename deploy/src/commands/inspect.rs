@@ -11,7 +11,8 @@
 //! Per camera, in `out/<camera>/`: `skin.png` (the engine's skin map), `faces.png` (the face
 //! detections behind the skin models in use), `rays.png` (where particles are), `clusters.png`
 //! (the EM components, labelled), `tracks.png` (the last positions of the tracks); and
-//! `out/montage.png`, every camera's layers side by side, downscaled.
+//! `out/montage.png`, every camera's layers side by side, downscaled; `out/points.csv`, the
+//! scene points the clusters were fitted to.
 
 use std::collections::VecDeque;
 use std::fmt::Write as _;
@@ -207,7 +208,23 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
     let path = out.join("montage.png");
     montage.save(&path).with_context(|| format!("writing `{}`", path.display()))?;
     summary.files.push(path);
+    let path = out.join("points.csv");
+    std::fs::write(&path, points_csv(&points)).with_context(|| format!("writing `{}`", path.display()))?;
+    summary.files.push(path);
     Ok(summary)
+}
+
+/// The frame's scene points as the cluster stage received them, one CSV row each: world
+/// position (m), velocity (m per frame), weight and skin probability.
+fn points_csv(points: &[ScenePoint]) -> String {
+    let mut csv = String::from("x,y,z,vx,vy,vz,weight,skin\n");
+    for p in points {
+        let [x, y, z] = p.position;
+        let [vx, vy, vz] = p.velocity;
+        // Writing into a String cannot fail.
+        let _ = writeln!(csv, "{x},{y},{z},{vx},{vy},{vz},{},{}", p.weight, p.skin);
+    }
+    csv
 }
 
 /// A folder name for camera `index` named `camera`: its name with path separators
@@ -345,32 +362,62 @@ fn faces_picture(photo: &RgbImage, round: Option<&FaceRound>, camera: usize) -> 
 /// shaded by confidence; on the others each such ray's estimate projected.
 fn rays_picture(photo: &RgbImage, engine: &SceneFlowEngine, camera: usize) -> RgbImage {
     let mut img = dimmed(photo);
+    let reference_rays = draw_field(&mut img, engine, camera, [255, 0, 255], |_| true);
+    let mut label = format!(
+        "{reference_rays} {}",
+        if camera == engine.reference() { "RAYS WITH PARTICLES" } else { "POINTS PROJECTED" }
+    );
+    // The second reference's rays, where it adds what the reference cannot see (the points
+    // `track` keeps of it).
+    if let Some(companion) = engine.companion() {
+        let kept = |p: [f32; 3]| !engine.reference_sees(p);
+        let rays = draw_field(&mut img, companion, camera, [0, 230, 255], kept);
+        let name = engine.cameras().get(companion.reference()).map_or("?", |c| c.name.as_str());
+        label.push_str(&format!(", {rays} FROM {}", name.to_uppercase()));
+    }
+    draw_label(&mut img, 4, 4, &label, [255, 255, 255]);
+    img
+}
+
+/// Draws the rays of `engine`'s field that hold particles and whose position passes `keep`
+/// on `camera`'s picture: as blocks on the engine's reference camera, as the estimated
+/// points projected on any other, in `colour` (paler where a ray is less confident).
+/// Returns how many it drew.
+fn draw_field(
+    img: &mut RgbImage,
+    engine: &SceneFlowEngine,
+    camera: usize,
+    colour: [u8; 3],
+    keep: impl Fn([f32; 3]) -> bool,
+) -> usize {
     let field = engine.field();
     let cams = engine.cameras();
-    let (Some(cam), Some(reference)) = (cams.get(camera), cams.get(engine.reference())) else { return img };
+    let (Some(cam), Some(reference)) = (cams.get(camera), cams.get(engine.reference())) else { return 0 };
     let scale = (reference.width as usize / field.width.max(1)).max(1);
     let mut rays = 0usize;
     for ray in (0..field.width * field.height).filter(|&r| field.confidence.get(r).is_some_and(|&c| c > 0.0)) {
+        let Some(&p) = field.position.get(ray).filter(|p| p.iter().all(|v| v.is_finite())) else { continue };
+        if !keep(p) {
+            continue;
+        }
         rays += 1;
-        let confidence = field.confidence[ray];
-        let colour = [255, (60.0 * (1.0 - confidence)) as u8, 255];
+        let pale = (60.0 * (1.0 - field.confidence[ray])) as u8;
+        let colour = colour.map(|c| c.max(pale));
         if camera == engine.reference() {
             let (x0, y0) = ((ray % field.width) * scale, (ray / field.width) * scale);
             for y in y0..y0 + scale {
                 for x in x0..x0 + scale {
-                    put(&mut img, x as i64, y as i64, colour);
+                    put(img, x as i64, y as i64, colour);
                 }
             }
-        } else if let Some(p) = field.position.get(ray).filter(|p| p.iter().all(|v| v.is_finite())) {
+        } else {
             let world = Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
             if let Some(q) = cam.project(&world) {
-                draw_disc(&mut img, q.x, q.y, 1.0, colour, false);
+                draw_disc(img, q.x, q.y, 1.0, colour, false);
             }
         }
     }
-    let what = if camera == engine.reference() { "RAYS WITH PARTICLES" } else { "POINTS PROJECTED" };
-    draw_label(&mut img, 4, 4, &format!("{rays} {what}"), [255, 255, 255]);
-    img
+    rays
 }
 
 /// The EM components projected: a circle of one standard deviation of position around each
