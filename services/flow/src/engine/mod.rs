@@ -1,20 +1,24 @@
 //! The Scene Particle engine: frames in, weighted particles per ray and a dense per-ray
 //! estimate out.
 
+pub mod particles;
+pub mod refine;
+pub mod rng;
+
 use std::time::Instant;
 
 use handflow_protocol::Camera;
 use nalgebra::Point2;
 use rayon::prelude::*;
 
-use crate::camera::LevelProjection;
 use crate::config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
-use crate::image::{LocalNormalisation, Pyramid};
-use crate::likelihood::{robust_window_cost, variance_likelihood, MatchImage, ReferenceWindow, MAX_IMAGES};
-use crate::particles::{ray_resample, Particle, SearchSpace};
-use crate::refine::{weighted_median_refine, RayEstimate};
-use crate::rng::RayRng;
-use crate::skin::SkinModel;
+use crate::engine::particles::{ray_resample, Particle, SearchSpace};
+use crate::engine::refine::{weighted_median_refine, RayEstimate};
+use crate::engine::rng::RayRng;
+use crate::matching::camera::LevelProjection;
+use crate::matching::image::{LocalNormalisation, Pyramid};
+use crate::matching::likelihood::{robust_window_cost, variance_likelihood, MatchImage, ReferenceWindow, MAX_IMAGES};
+use crate::skin::model::SkinModel;
 
 /// Why the engine refused a configuration or a frame.
 #[derive(Debug, thiserror::Error)]
@@ -1163,7 +1167,7 @@ struct IterationContext<'a> {
     config: &'a EngineConfig,
     space: SearchSpace,
     images: &'a [MatchImage<'a>],
-    reference_image: &'a crate::image::ColourImage,
+    reference_image: &'a crate::matching::image::ColourImage,
     dirs: &'a [[f32; 3]],
     origin: [f32; 3],
     grid_width: usize,
@@ -1239,7 +1243,7 @@ impl SkinTerm<'_> {
     }
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// One update of a ray holding particles, in the variant's formulation. Dispatched per
     /// occupied ray: the CPU check is a cached load against microseconds of matching.
     #[allow(clippy::too_many_arguments)]
@@ -1665,7 +1669,7 @@ fn ray_grid(camera: &Camera, level: usize, with_rays: bool) -> RayGrid {
 /// The camera looking from the most different direction than `reference`'s, under 90
 /// degrees (a camera behind the person sees no more of the hands), with three or more
 /// cameras: the second reference of [`EngineConfig::second_reference`].
-pub fn second_reference_camera(cameras: &[Camera], reference: usize) -> Option<usize> {
+pub(crate) fn second_reference_camera(cameras: &[Camera], reference: usize) -> Option<usize> {
     if cameras.len() < 3 {
         return None;
     }
