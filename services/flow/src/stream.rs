@@ -227,7 +227,7 @@ pub fn working_level_summary(config: &EngineConfig, cameras: &[Camera], referenc
         0 => String::new(),
         s => format!(", a ray every {} pixels of the level", 1u32 << s),
     };
-    let second = match crate::engine::second_reference_camera(cameras, reference) {
+    let second = match crate::engine::companion::second_reference_camera(cameras, reference) {
         Some(k) if config.second_reference => {
             format!("; where `{}` cannot see, rays from `{}`", cam.name, cameras[k].name)
         }

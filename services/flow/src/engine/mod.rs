@@ -5,6 +5,8 @@ pub mod particles;
 pub mod refine;
 pub mod rng;
 
+pub(crate) mod companion;
+
 use std::time::Instant;
 
 use handflow_protocol::Camera;
@@ -242,8 +244,6 @@ impl SceneFlowEngine {
         let skin = config.coverage == Coverage::Skin;
         let skin_models = if skin { vec![SkinModel::generic(0.0); cameras.len()] } else { Vec::new() };
         let active = if skin { grids.iter().map(|g| vec![false; g.width * g.height]).collect() } else { Vec::new() };
-        let companion_config =
-            config.second_reference.then(|| EngineConfig { second_reference: false, ..config.clone() });
         let mut engine = Self {
             config,
             cameras,
@@ -289,18 +289,8 @@ impl SceneFlowEngine {
             skin_maps: Default::default(),
             active,
         };
-        if let Some(c) = companion_config {
-            if let Some(second) = second_reference_camera(&engine.cameras, reference) {
-                let mut companion = SceneFlowEngine::new(c, engine.cameras.clone(), second)?;
-                companion.veto = seen_by(
-                    &engine.cameras[second],
-                    &engine.projections[0][reference],
-                    engine.cameras[reference].width,
-                    engine.cameras[reference].height,
-                    engine.config.depth_range,
-                );
-                engine.companion = Some(Box::new(companion));
-            }
+        if engine.config.second_reference {
+            engine.add_companion()?;
         }
         Ok(engine)
     }
@@ -328,13 +318,6 @@ impl SceneFlowEngine {
             c.set_skin_models(models)?;
         }
         Ok(())
-    }
-
-    /// The engine of the second reference camera, if any ([`EngineConfig::second_reference`]):
-    /// its last estimate is of the same frame as this one's. It works on this engine's
-    /// images: its own skin maps and pyramids are empty (read them from this engine).
-    pub fn companion(&self) -> Option<&SceneFlowEngine> {
-        self.companion.as_deref()
     }
 
     /// Whether world point `p` lies in front of the reference camera and inside its image.
@@ -519,34 +502,6 @@ impl SceneFlowEngine {
             }
             None => false,
         }
-    }
-
-    /// Runs `step` on the companion engine with this engine's frames (pyramids, skin maps,
-    /// which views are there) lent to it: the same images, built once. Adds its cost to
-    /// this estimate's. While the newest frame lacks the companion's reference view, the
-    /// companion starts afresh instead.
-    fn run_companion(
-        &mut self,
-        started: Instant,
-        step: impl FnOnce(&mut SceneFlowEngine) -> Result<bool, FlowError>,
-    ) -> Result<(), FlowError> {
-        let Some(companion) = self.companion.as_mut() else { return Ok(()) };
-        if !self.present[self.ring_newest].get(companion.reference).copied().unwrap_or(true) {
-            companion.reset();
-            return Ok(());
-        }
-        std::mem::swap(&mut self.ring, &mut companion.ring);
-        std::mem::swap(&mut self.skin_maps, &mut companion.skin_maps);
-        std::mem::swap(&mut self.present, &mut companion.present);
-        let stepped = step(companion);
-        std::mem::swap(&mut self.ring, &mut companion.ring);
-        std::mem::swap(&mut self.skin_maps, &mut companion.skin_maps);
-        std::mem::swap(&mut self.present, &mut companion.present);
-        if stepped? {
-            self.stats.evaluations += companion.stats.evaluations;
-            self.stats.seconds = started.elapsed().as_secs_f64();
-        }
-        Ok(())
     }
 
     /// Ends a stream: with forwards/backwards, estimates the last frame with the two-frame
@@ -1666,56 +1621,6 @@ fn ray_grid(camera: &Camera, level: usize, with_rays: bool) -> RayGrid {
     RayGrid { width, height, dirs }
 }
 
-/// The camera looking from the most different direction than `reference`'s, under 90
-/// degrees (a camera behind the person sees no more of the hands), with three or more
-/// cameras: the second reference of [`EngineConfig::second_reference`].
-pub(crate) fn second_reference_camera(cameras: &[Camera], reference: usize) -> Option<usize> {
-    if cameras.len() < 3 {
-        return None;
-    }
-    let axis = |c: &Camera| c.rotation.matrix().row(2).transpose();
-    let a = axis(&cameras[reference]);
-    (0..cameras.len())
-        .filter(|&k| k != reference)
-        .map(|k| (k, a.dot(&axis(&cameras[k]))))
-        .filter(|&(_, cos)| cos > 0.0)
-        .min_by(|x, y| x.1.total_cmp(&y.1))
-        .map(|(k, _)| k)
-}
-
-/// Full-resolution pixels of `camera` whose ray, over `depth_range`, runs mostly through
-/// what the other camera (`seeing`, an image `width` x `height`) sees: at least half of
-/// its depths, spaced evenly in inverse depth, project inside that image.
-fn seen_by(camera: &Camera, seeing: &LevelProjection, width: u32, height: u32, depth_range: (f32, f32)) -> Vec<bool> {
-    const DEPTHS: usize = 16;
-    // Decided per ray of level 2 (a 4x4-pixel block): the mask follows the geometry, which
-    // changes slowly across the image.
-    const LEVEL: usize = 2;
-    let block = 1usize << LEVEL;
-    let grid = ray_grid(camera, LEVEL, true);
-    let centre = camera.centre();
-    let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
-    let (near, far) = (1.0 / depth_range.0, 1.0 / depth_range.1);
-    let inside = |p: [f32; 3]| in_image(seeing, width, height, p);
-    let ray_seen: Vec<bool> = grid
-        .dirs
-        .iter()
-        .map(|&dir| {
-            let seen = (0..DEPTHS)
-                .filter(|&k| {
-                    let inverse = near + (far - near) * (k as f32 + 0.5) / DEPTHS as f32;
-                    inside(point_on_ray(origin, dir, 1.0 / inverse))
-                })
-                .count();
-            2 * seen >= DEPTHS
-        })
-        .collect();
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    (0..w * h)
-        .map(|i| ray_seen[((i / w) / block).min(grid.height - 1) * grid.width + ((i % w) / block).min(grid.width - 1)])
-        .collect()
-}
-
 /// Whether world point `p` lies in front of the camera of `projection` and inside its
 /// `width` x `height` image (pixel centres at integers).
 fn in_image(projection: &LevelProjection, width: u32, height: u32, p: [f32; 3]) -> bool {
@@ -1745,14 +1650,14 @@ mod tests {
     use handflow_protocol::Distortion;
     use nalgebra::{Matrix3, Rotation3, Vector3};
 
-    fn camera(name: &str, x: f64) -> Camera {
+    pub(super) fn camera(name: &str, x: f64) -> Camera {
         let k = Matrix3::new(50.0, 0.0, 15.5, 0.0, 50.0, 11.5, 0.0, 0.0, 1.0);
         Camera::new(name, 32, 24, k, Distortion::default(), Rotation3::identity(), Vector3::new(-x, 0.0, 0.0))
             .expect("valid camera")
     }
 
     /// A 32x24 RGB view of a texture moved `shift` pixels to the right.
-    fn textured_view(shift: usize, seed: u32) -> Vec<u8> {
+    pub(super) fn textured_view(shift: usize, seed: u32) -> Vec<u8> {
         (0..24 * 32)
             .flat_map(|i| {
                 let (x, y) = ((i % 32 + 64 - shift) as u32, (i / 32) as u32);
@@ -1837,80 +1742,6 @@ mod tests {
             }
         }
         assert!(estimates >= 2 && saved > 0, "{estimates} estimates, {saved} evaluations saved");
-    }
-
-    /// A camera at `x` looking along +z turned by `yaw_deg` about the vertical axis.
-    fn turned_camera(name: &str, x: f64, yaw_deg: f64) -> Camera {
-        let k = Matrix3::new(50.0, 0.0, 15.5, 0.0, 50.0, 11.5, 0.0, 0.0, 1.0);
-        let rotation = Rotation3::from_axis_angle(&Vector3::y_axis(), yaw_deg.to_radians());
-        let translation = -(rotation * Vector3::new(x, 0.0, 0.0));
-        Camera::new(name, 32, 24, k, Distortion::default(), rotation, translation).expect("valid camera")
-    }
-
-    #[test]
-    fn the_second_reference_looks_from_the_most_different_direction_in_front() {
-        let rig = vec![
-            turned_camera("front", 0.0, 0.0),
-            turned_camera("a little aside", 0.2, 20.0),
-            turned_camera("side", 0.5, 70.0),
-            turned_camera("behind", 1.0, 150.0),
-        ];
-        assert_eq!(second_reference_camera(&rig, 0), Some(2), "the side camera, not the one behind");
-        assert_eq!(second_reference_camera(&rig[..2], 0), None, "two cameras have no third view to match in");
-        assert_eq!(second_reference_camera(&[rig[0].clone(), rig[1].clone(), rig[3].clone()], 0), Some(1));
-    }
-
-    #[test]
-    fn a_second_reference_keeps_only_rays_the_reference_view_does_not_see() {
-        let reference = camera("ref", 0.0);
-        // 0.3 m to the right, looking the same way: its left edge looks into the reference's
-        // view at every depth from 0.5 m on, its right edge never does.
-        let second = camera("second", 0.3);
-        let seeing = LevelProjection::new(&reference, 0);
-        let seen = seen_by(&second, &seeing, 32, 24, (0.5, 5.0));
-        assert_eq!(seen.len(), 32 * 24);
-        assert!(seen[12 * 32], "left edge: seen by the reference");
-        assert!(!seen[12 * 32 + 31], "right edge: beyond the reference's image");
-        let engine = SceneFlowEngine::new(
-            EngineConfig { coverage: Coverage::Skin, second_reference: true, ..EngineConfig::default() },
-            vec![reference.clone(), second, camera("third", -0.1)],
-            0,
-        )
-        .unwrap();
-        let companion = engine.companion().expect("three cameras: a second reference");
-        assert_eq!(companion.reference(), 1);
-        assert!(engine.reference_sees([0.0, 0.0, 2.0]) && !engine.reference_sees([3.0, 0.0, 2.0]));
-        assert!(!engine.reference_sees([0.0, 0.0, -2.0]), "behind the camera");
-    }
-
-    #[test]
-    fn the_companion_estimates_the_same_frame_on_the_images_it_is_lent() {
-        let cameras = vec![camera("ref", 0.0), camera("second", 0.3), camera("third", -0.1)];
-        let config = EngineConfig {
-            coverage: Coverage::Skin,
-            second_reference: true,
-            pyramid_levels: 2,
-            coarse_extra_loops: 2,
-            ..EngineConfig::default()
-        };
-        let mut engine = SceneFlowEngine::new(config, cameras, 0).unwrap();
-        for f in 0..4 {
-            let views = [textured_view(f, 1), textured_view(f + 2, 1), textured_view(f + 4, 1)];
-            let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
-            let estimated = engine.push_frame(&views).unwrap().is_some();
-            let companion = engine.companion().unwrap();
-            assert_eq!(companion.frames_pushed, engine.frames_pushed, "frame {f}");
-            if estimated {
-                assert_eq!(companion.stats().frame, engine.stats().frame, "frame {f}");
-            }
-            // Lent for the estimate and taken back: one set of images for both.
-            assert!(companion.ring.iter().all(Vec::is_empty) && companion.skin_maps.iter().all(Vec::is_empty));
-        }
-        // A frame without the companion's reference view starts it afresh; the main goes on.
-        let views = [textured_view(5, 1), vec![0; 32 * 24 * 3], textured_view(9, 1)];
-        let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
-        assert!(engine.push_frame_partial(&views, 0b010).unwrap().is_some());
-        assert_eq!(engine.companion().unwrap().ring_len, 0);
     }
 
     #[test]
