@@ -6,6 +6,7 @@ pub mod refine;
 pub mod rng;
 
 pub(crate) mod companion;
+mod neighbour_costs;
 
 use std::time::Instant;
 
@@ -14,6 +15,7 @@ use nalgebra::Point2;
 use rayon::prelude::*;
 
 use crate::config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
+use crate::engine::neighbour_costs::{same_hypothesis, NeighbourCosts};
 use crate::engine::particles::{ray_resample, Particle, SearchSpace};
 use crate::engine::refine::{weighted_median_refine, RayEstimate};
 use crate::engine::rng::RayRng;
@@ -875,7 +877,7 @@ impl SceneFlowEngine {
         stage: u64,
         elite_cost_valid: bool,
     ) -> u64 {
-        self.loop_stamp = self.loop_stamp.wrapping_add(if self.reuse_neighbour_costs { 1 } else { 2 });
+        self.advance_loop_stamp();
         let n = self.config.particles_per_ray;
         let grid = &self.grids[grid_level];
         let (gw, gh) = (grid.width, grid.height);
@@ -1414,7 +1416,7 @@ impl IterationContext<'_> {
         // The elite (slot 0) kept its cost from the previous loop on this level.
         let elite_known = self.elite_cost_valid && self.best_prev[ray].is_valid() && cands[0].cost.is_finite();
         // The last loop's neighbour costs hold on this loop's images only on the same level.
-        let memo_known = self.elite_cost_valid && memo.stamp == self.loop_stamp.wrapping_sub(1);
+        let memo_known = self.elite_cost_valid && memo.is_from_loop_before(self.loop_stamp);
         let mut evaluations = 0u64;
         for k in 0..m {
             // A neighbour's best is often the very hypothesis this ray already holds (a good
@@ -1482,49 +1484,6 @@ impl IterationContext<'_> {
         *count = n as u8;
         evaluations
     }
-}
-
-/// The costs one ray's neighbour candidates had in the last loop. In a converged region a
-/// neighbour's best stays the same from loop to loop, and the same hypothesis on the same ray
-/// against the same images costs the same, bit for bit: it is looked up, not matched again.
-#[derive(Clone, Copy)]
-struct NeighbourCosts {
-    /// The `iterate` call that wrote them.
-    stamp: u32,
-    len: u8,
-    entries: [Particle; MAX_NEIGHBOUR_CANDIDATES],
-}
-
-/// Neighbour candidates per ray: four neighbours' previous best and the sweep's updated one.
-const MAX_NEIGHBOUR_CANDIDATES: usize = 5;
-
-impl Default for NeighbourCosts {
-    fn default() -> Self {
-        Self { stamp: u32::MAX, len: 0, entries: [Particle::EMPTY; MAX_NEIGHBOUR_CANDIDATES] }
-    }
-}
-
-impl NeighbourCosts {
-    #[inline(always)]
-    fn cost_of(&self, candidate: &Particle) -> Option<f32> {
-        let len = usize::from(self.len);
-        self.entries[..len].iter().find(|e| same_hypothesis(e, candidate)).map(|e| e.cost)
-    }
-
-    #[inline(always)]
-    fn remember(&mut self, candidates: &[Particle], stamp: u32) {
-        let len = candidates.len().min(MAX_NEIGHBOUR_CANDIDATES);
-        self.entries[..len].copy_from_slice(&candidates[..len]);
-        self.len = len as u8;
-        self.stamp = stamp;
-    }
-}
-
-/// Whether two candidates of one ray are the same hypothesis (bitwise equal depth and
-/// velocity), so that they have the same cost.
-#[inline(always)]
-fn same_hypothesis(a: &Particle, b: &Particle) -> bool {
-    a.depth.to_bits() == b.depth.to_bits() && (0..3).all(|i| a.velocity[i].to_bits() == b.velocity[i].to_bits())
 }
 
 /// The weighted mean of a ray's particles (the note on the prototype found it beats the
@@ -1712,61 +1671,6 @@ mod tests {
         // An occluder in front of the skin in one view: that view's verdict is dropped.
         assert_eq!(log_weight([1.0, -2.0], true), 1.0);
         assert_eq!(log_weight([-1.0, 0.5], true), 0.5);
-    }
-
-    #[test]
-    fn reusing_last_loops_neighbour_costs_changes_nothing_but_the_work() {
-        let cameras = vec![camera("ref", 0.0), camera("a", 0.1), camera("b", -0.1)];
-        let config = EngineConfig { pyramid_levels: 2, coarse_extra_loops: 3, ..EngineConfig::default() };
-        let mut reusing = SceneFlowEngine::new(config.clone(), cameras.clone(), 0).unwrap();
-        let mut matching_all = SceneFlowEngine::new(config, cameras, 0).unwrap();
-        matching_all.reuse_neighbour_costs = false;
-        let (mut saved, mut estimates) = (0, 0);
-        for f in 0..4 {
-            let views = [textured_view(f, 1), textured_view(f + 2, 1), textured_view(f + 4, 1)];
-            let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
-            let a = reusing.push_frame(&views).unwrap().cloned();
-            let b = matching_all.push_frame(&views).unwrap().cloned();
-            assert_eq!(a.is_some(), b.is_some());
-            if let (Some(a), Some(b)) = (a, b) {
-                assert_eq!(
-                    a.depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
-                    b.depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
-                    "frame {f}"
-                );
-                assert_eq!(a.velocity, b.velocity, "frame {f}");
-                assert_eq!(a.confidence, b.confidence, "frame {f}");
-                assert!(reusing.stats().evaluations <= matching_all.stats().evaluations);
-                saved += matching_all.stats().evaluations - reusing.stats().evaluations;
-                estimates += 1;
-            }
-        }
-        assert!(estimates >= 2 && saved > 0, "{estimates} estimates, {saved} evaluations saved");
-    }
-
-    #[test]
-    fn neighbour_costs_are_found_by_hypothesis_only() {
-        let p = Particle { depth: 1.25, velocity: [0.01, -0.02, 0.0], weight: 0.1, cost: 0.3 };
-        let q = Particle { depth: 1.5, cost: 0.7, ..p };
-        let mut memo = NeighbourCosts::default();
-        assert_eq!(memo.cost_of(&p), None);
-        memo.remember(&[p, q], 7);
-        assert_eq!((memo.stamp, memo.cost_of(&Particle { weight: 0.9, cost: f32::NAN, ..q })), (7, Some(0.7)));
-        assert_eq!(memo.cost_of(&Particle { depth: 1.0, ..p }), None);
-        // More candidates than slots: the first ones are kept.
-        memo.remember(&[q; MAX_NEIGHBOUR_CANDIDATES + 2], 8);
-        assert_eq!((usize::from(memo.len), memo.cost_of(&p)), (MAX_NEIGHBOUR_CANDIDATES, None));
-    }
-
-    #[test]
-    fn only_bitwise_equal_hypotheses_share_a_cost() {
-        let p = Particle { depth: 1.25, velocity: [0.01, -0.02, 0.0], weight: 0.1, cost: 0.3 };
-        // Weight and cost are not the hypothesis.
-        assert!(same_hypothesis(&p, &Particle { weight: 0.5, cost: 9.0, ..p }));
-        assert!(!same_hypothesis(&p, &Particle { depth: 1.250_001, ..p }));
-        assert!(!same_hypothesis(&p, &Particle { velocity: [0.01, -0.02, 1e-9], ..p }));
-        // Conservative: -0 and +0 are evaluated apart.
-        assert!(!same_hypothesis(&p, &Particle { velocity: [0.01, -0.02, -0.0], ..p }));
     }
 
     #[test]
