@@ -66,8 +66,8 @@ fn at_a_low_frame_rate_the_warm_up_holds_the_same_time_not_the_same_frames() {
     // at 30 fps): frames 0..=4 are held, and a live stream's first estimate is frame 3's.
     assert_eq!(detect_every_for_rate(6.0), 2);
     assert_eq!(model_lag_for_rate(6.0), 1);
-    assert_eq!(detect_every_for_rate(30.0), handflow_flow::skin_adapt::DEFAULT_DETECT_EVERY);
-    assert_eq!(detect_every_for_rate(120.0), handflow_flow::skin_adapt::DEFAULT_DETECT_EVERY);
+    assert_eq!(detect_every_for_rate(30.0), handflow_flow::skin::adapt::DEFAULT_DETECT_EVERY);
+    assert_eq!(detect_every_for_rate(120.0), handflow_flow::skin::adapt::DEFAULT_DETECT_EVERY);
     let frames = estimated_frames(|s| s.with_frame_rate(6.0).with_backlog_limit(3).without_waiting_for_models(), 0);
     assert_eq!(frames, (3..u64::from(FRAMES)).collect::<Vec<_>>());
     let frames = estimated_frames(|s| s.with_frame_rate(6.0), 0);

@@ -2,9 +2,9 @@
 //! finds the synthetic face, and adapting to it makes the skin decision separate head and
 //! hands from everything else better than the generic prior, more so with more frames.
 
-use handflow_flow::face_fusion::fuse_faces;
-use handflow_flow::faces::FaceDetector;
-use handflow_flow::skin::SkinModel;
+use handflow_flow::skin::face_fusion::fuse_faces;
+use handflow_flow::skin::faces::FaceDetector;
+use handflow_flow::skin::model::SkinModel;
 use handflow_ingest::synthetic::{ids, Renderer, SceneSpec};
 
 struct Scores {
@@ -103,7 +103,7 @@ impl FrontCamera {
 
 #[test]
 fn a_camera_mounted_sideways_finds_the_face_once_its_frames_are_turned_upright() {
-    use handflow_flow::faces::Region;
+    use handflow_flow::skin::faces::Region;
     for turns in [1u8, 2, 3] {
         let mut spec = SceneSpec::preset("signer-3cam").expect("preset");
         spec.cameras.mount_quarter_turns = vec![0, turns, 0];
@@ -115,7 +115,7 @@ fn a_camera_mounted_sideways_finds_the_face_once_its_frames_are_turned_upright()
             let head = renderer.truth(frame, &masks)[0].1.pixel[1].expect("head projects");
             let image = &rgb[view..2 * view];
             let whole = Region { x: 0, y: 0, width: w, height: h };
-            let on_head = |faces: &[handflow_flow::faces::FaceBox]| {
+            let on_head = |faces: &[handflow_flow::skin::faces::FaceBox]| {
                 faces.iter().any(|f| f.contains(head[0] as f32, head[1] as f32))
             };
             turned += usize::from(on_head(&detector.detect_in_turned(image, w, h, whole, turns)));
@@ -131,7 +131,7 @@ fn a_camera_mounted_sideways_finds_the_face_once_its_frames_are_turned_upright()
 
 #[test]
 fn a_face_of_known_size_is_found_as_well_on_binned_pixels() {
-    use handflow_flow::faces::{detection_bin, Region};
+    use handflow_flow::skin::faces::{detection_bin, Region};
     // The signer seen by 1280x960 cameras with a narrower lens: faces over 128 px wide.
     let mut spec = SceneSpec::preset("signer-3cam").expect("preset");
     (spec.width, spec.height) = (1280, 960);
@@ -146,7 +146,7 @@ fn a_face_of_known_size_is_found_as_well_on_binned_pixels() {
         let Some(face) = full.iter().max_by(|a, b| a.score.total_cmp(&b.score)).copied() else { continue };
         let bin = detection_bin(face.width);
         assert!(bin >= 2, "frame {frame}: a {} px face is searched on binned pixels", face.width);
-        let region = Region::around(&face, handflow_flow::skin_adapt::SEARCH_SCALE, w, h);
+        let region = Region::around(&face, handflow_flow::skin::adapt::SEARCH_SCALE, w, h);
         let binned = detector.detect_in_binned(image, w, h, region, 0, bin);
         let same = binned.iter().find(|f| f.contains(face.x + 0.5 * face.width, face.y + 0.5 * face.height));
         let Some(same) = same else { panic!("frame {frame}: the {} px face is not found at bin {bin}", face.width) };

@@ -7,7 +7,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use handflow_flow::skin_adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
+use handflow_flow::skin::adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
 use handflow_flow::stream::{stream_engine_config, STREAM_DEPTH_RANGE_M, STREAM_SPEED_BOUND_M_S, WARM_UP_ROUNDS};
 use handflow_flow::{DenseField, EngineConfig, SceneFlowEngine, Temporal, Variant};
 use handflow_ingest::synthetic::MASKS_DIR;

@@ -6,7 +6,7 @@
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use handflow_flow::rng::RayRng;
+use handflow_flow::engine::rng::RayRng;
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
 use handflow_protocol::messages::{
     ClusterSet, FrameHeader, ParticleHeader, ScenePoint, TrajectorySample, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION,

@@ -5,8 +5,8 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use handflow_flow::skin::SkinModel;
-use handflow_flow::skin_adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
+use handflow_flow::skin::adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
+use handflow_flow::skin::model::SkinModel;
 use handflow_ingest::synthetic::MASKS_DIR;
 use handflow_ingest::Recording;
 

@@ -384,7 +384,7 @@ impl EngineConfig {
         if !(0.0..=1.0).contains(&self.fresh_fraction) {
             return Err(format!("`fresh_fraction` must be in [0, 1], got {}", self.fresh_fraction));
         }
-        let max = crate::likelihood::MAX_WINDOW_RADIUS;
+        let max = crate::matching::likelihood::MAX_WINDOW_RADIUS;
         if self.window_radius > max || self.coarse_window_radius > max {
             return Err(format!(
                 "`window_radius` and `coarse_window_radius` must be at most {max}, got {} and {}",

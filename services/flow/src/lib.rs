@@ -7,24 +7,20 @@
 //! ray, 3D velocity) and a dense per-ray field ([`DenseField`]). Two variants share the
 //! particle machinery ([`Variant`]): `paper`, the method as published, and `handflow`, the
 //! default, which adds spatial coupling and robust matching.
+//!
+//! The crate is grouped by concern: [`engine`] (the particle filter and its per-ray
+//! operations), [`matching`] (images, projections and the costs that compare them), [`skin`]
+//! (the skin-colour term and the face detections that adapt it), [`stream`] (the engine over
+//! a stream of frame sets) and [`config`] (every parameter).
 
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
-pub mod camera;
 pub mod config;
-mod engine;
-pub mod face_fusion;
-pub mod faces;
-pub mod image;
-pub mod isa;
-pub mod likelihood;
-pub mod particles;
-pub mod refine;
-pub mod rng;
+pub mod engine;
+pub mod matching;
 pub mod skin;
-pub mod skin_adapt;
 pub mod stream;
 
 pub use config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
+pub use engine::particles::Particle;
 pub use engine::{DenseField, FlowError, FrameStats, SceneFlowEngine};
-pub use particles::Particle;

@@ -17,10 +17,10 @@ use handflow_protocol::messages::ScenePoint;
 use handflow_protocol::Camera;
 use nalgebra::{Point3, Vector3};
 
-use crate::face_fusion::FusedFaces;
-use crate::faces::FaceBox;
-use crate::skin::SkinModel;
-use crate::skin_adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
+use crate::skin::adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
+use crate::skin::face_fusion::FusedFaces;
+use crate::skin::faces::FaceBox;
+use crate::skin::model::SkinModel;
 use crate::{Coverage, EngineConfig, FlowError, SceneFlowEngine, Temporal, Variant};
 
 /// Camera-frame depths searched on a stream, metres: a signer is between half a metre and
@@ -227,7 +227,7 @@ pub fn working_level_summary(config: &EngineConfig, cameras: &[Camera], referenc
         0 => String::new(),
         s => format!(", a ray every {} pixels of the level", 1u32 << s),
     };
-    let second = match crate::engine::second_reference_camera(cameras, reference) {
+    let second = match crate::engine::companion::second_reference_camera(cameras, reference) {
         Some(k) if config.second_reference => {
             format!("; where `{}` cannot see, rays from `{}`", cam.name, cameras[k].name)
         }

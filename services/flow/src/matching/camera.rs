@@ -5,8 +5,8 @@ use handflow_protocol::Camera;
 /// A camera's projection onto one pyramid level, in `f32`.
 ///
 /// Level `l` pixel coordinates relate to full-resolution ones by `u_l = (u + 0.5) / 2^l - 0.5`
-/// (the centre convention of [`crate::image::ColourImage::downsample_into`]), folded into the
-/// intrinsics so projecting costs the same at every level.
+/// (the centre convention of [`crate::matching::image::ColourImage::downsample_into`]),
+/// folded into the intrinsics so projecting costs the same at every level.
 #[derive(Clone, Debug)]
 pub struct LevelProjection {
     rotation: [[f32; 3]; 3],

@@ -5,7 +5,7 @@
 //! to the ray's pixel. Medians do not average across a depth edge (the minority side loses),
 //! and colour weights keep the vote on the ray's own surface.
 
-use crate::image::ColourImage;
+use crate::matching::image::ColourImage;
 
 /// Per-ray estimate before and after refinement.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]

@@ -30,7 +30,7 @@ macro_rules! vectorised_fn {
                 body($($arg),*)
             }
             #[cfg(target_arch = "x86_64")]
-            if $crate::isa::has_avx2_fma() {
+            if $crate::matching::isa::has_avx2_fma() {
                 // SAFETY: the CPU was just checked for both features `avx2_fma` is compiled for.
                 #[allow(unsafe_code)]
                 return unsafe { avx2_fma($($arg),*) };

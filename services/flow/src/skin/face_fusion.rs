@@ -10,7 +10,7 @@
 use handflow_protocol::Camera;
 use nalgebra::{Point2, Point3};
 
-use crate::faces::FaceBox;
+use crate::skin::faces::FaceBox;
 
 /// Largest reprojection error of a box centre, as a share of the box width, for two
 /// detections to be the same face.

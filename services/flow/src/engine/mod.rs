@@ -1,20 +1,28 @@
 //! The Scene Particle engine: frames in, weighted particles per ray and a dense per-ray
 //! estimate out.
 
+pub mod particles;
+pub mod refine;
+pub mod rng;
+
+pub(crate) mod companion;
+mod neighbour_costs;
+
 use std::time::Instant;
 
 use handflow_protocol::Camera;
 use nalgebra::Point2;
 use rayon::prelude::*;
 
-use crate::camera::LevelProjection;
 use crate::config::{Coverage, EngineConfig, Temporal, Variant, MAX_PARTICLES_PER_RAY};
-use crate::image::{LocalNormalisation, Pyramid};
-use crate::likelihood::{robust_window_cost, variance_likelihood, MatchImage, ReferenceWindow, MAX_IMAGES};
-use crate::particles::{ray_resample, Particle, SearchSpace};
-use crate::refine::{weighted_median_refine, RayEstimate};
-use crate::rng::RayRng;
-use crate::skin::SkinModel;
+use crate::engine::neighbour_costs::{same_hypothesis, NeighbourCosts};
+use crate::engine::particles::{ray_resample, Particle, SearchSpace};
+use crate::engine::refine::{weighted_median_refine, RayEstimate};
+use crate::engine::rng::RayRng;
+use crate::matching::camera::LevelProjection;
+use crate::matching::image::{LocalNormalisation, Pyramid};
+use crate::matching::likelihood::{robust_window_cost, variance_likelihood, MatchImage, ReferenceWindow, MAX_IMAGES};
+use crate::skin::model::SkinModel;
 
 /// Why the engine refused a configuration or a frame.
 #[derive(Debug, thiserror::Error)]
@@ -238,8 +246,6 @@ impl SceneFlowEngine {
         let skin = config.coverage == Coverage::Skin;
         let skin_models = if skin { vec![SkinModel::generic(0.0); cameras.len()] } else { Vec::new() };
         let active = if skin { grids.iter().map(|g| vec![false; g.width * g.height]).collect() } else { Vec::new() };
-        let companion_config =
-            config.second_reference.then(|| EngineConfig { second_reference: false, ..config.clone() });
         let mut engine = Self {
             config,
             cameras,
@@ -285,18 +291,8 @@ impl SceneFlowEngine {
             skin_maps: Default::default(),
             active,
         };
-        if let Some(c) = companion_config {
-            if let Some(second) = second_reference_camera(&engine.cameras, reference) {
-                let mut companion = SceneFlowEngine::new(c, engine.cameras.clone(), second)?;
-                companion.veto = seen_by(
-                    &engine.cameras[second],
-                    &engine.projections[0][reference],
-                    engine.cameras[reference].width,
-                    engine.cameras[reference].height,
-                    engine.config.depth_range,
-                );
-                engine.companion = Some(Box::new(companion));
-            }
+        if engine.config.second_reference {
+            engine.add_companion()?;
         }
         Ok(engine)
     }
@@ -324,13 +320,6 @@ impl SceneFlowEngine {
             c.set_skin_models(models)?;
         }
         Ok(())
-    }
-
-    /// The engine of the second reference camera, if any ([`EngineConfig::second_reference`]):
-    /// its last estimate is of the same frame as this one's. It works on this engine's
-    /// images: its own skin maps and pyramids are empty (read them from this engine).
-    pub fn companion(&self) -> Option<&SceneFlowEngine> {
-        self.companion.as_deref()
     }
 
     /// Whether world point `p` lies in front of the reference camera and inside its image.
@@ -515,34 +504,6 @@ impl SceneFlowEngine {
             }
             None => false,
         }
-    }
-
-    /// Runs `step` on the companion engine with this engine's frames (pyramids, skin maps,
-    /// which views are there) lent to it: the same images, built once. Adds its cost to
-    /// this estimate's. While the newest frame lacks the companion's reference view, the
-    /// companion starts afresh instead.
-    fn run_companion(
-        &mut self,
-        started: Instant,
-        step: impl FnOnce(&mut SceneFlowEngine) -> Result<bool, FlowError>,
-    ) -> Result<(), FlowError> {
-        let Some(companion) = self.companion.as_mut() else { return Ok(()) };
-        if !self.present[self.ring_newest].get(companion.reference).copied().unwrap_or(true) {
-            companion.reset();
-            return Ok(());
-        }
-        std::mem::swap(&mut self.ring, &mut companion.ring);
-        std::mem::swap(&mut self.skin_maps, &mut companion.skin_maps);
-        std::mem::swap(&mut self.present, &mut companion.present);
-        let stepped = step(companion);
-        std::mem::swap(&mut self.ring, &mut companion.ring);
-        std::mem::swap(&mut self.skin_maps, &mut companion.skin_maps);
-        std::mem::swap(&mut self.present, &mut companion.present);
-        if stepped? {
-            self.stats.evaluations += companion.stats.evaluations;
-            self.stats.seconds = started.elapsed().as_secs_f64();
-        }
-        Ok(())
     }
 
     /// Ends a stream: with forwards/backwards, estimates the last frame with the two-frame
@@ -916,7 +877,7 @@ impl SceneFlowEngine {
         stage: u64,
         elite_cost_valid: bool,
     ) -> u64 {
-        self.loop_stamp = self.loop_stamp.wrapping_add(if self.reuse_neighbour_costs { 1 } else { 2 });
+        self.advance_loop_stamp();
         let n = self.config.particles_per_ray;
         let grid = &self.grids[grid_level];
         let (gw, gh) = (grid.width, grid.height);
@@ -1163,7 +1124,7 @@ struct IterationContext<'a> {
     config: &'a EngineConfig,
     space: SearchSpace,
     images: &'a [MatchImage<'a>],
-    reference_image: &'a crate::image::ColourImage,
+    reference_image: &'a crate::matching::image::ColourImage,
     dirs: &'a [[f32; 3]],
     origin: [f32; 3],
     grid_width: usize,
@@ -1239,7 +1200,7 @@ impl SkinTerm<'_> {
     }
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// One update of a ray holding particles, in the variant's formulation. Dispatched per
     /// occupied ray: the CPU check is a cached load against microseconds of matching.
     #[allow(clippy::too_many_arguments)]
@@ -1455,7 +1416,7 @@ impl IterationContext<'_> {
         // The elite (slot 0) kept its cost from the previous loop on this level.
         let elite_known = self.elite_cost_valid && self.best_prev[ray].is_valid() && cands[0].cost.is_finite();
         // The last loop's neighbour costs hold on this loop's images only on the same level.
-        let memo_known = self.elite_cost_valid && memo.stamp == self.loop_stamp.wrapping_sub(1);
+        let memo_known = self.elite_cost_valid && memo.is_from_loop_before(self.loop_stamp);
         let mut evaluations = 0u64;
         for k in 0..m {
             // A neighbour's best is often the very hypothesis this ray already holds (a good
@@ -1523,49 +1484,6 @@ impl IterationContext<'_> {
         *count = n as u8;
         evaluations
     }
-}
-
-/// The costs one ray's neighbour candidates had in the last loop. In a converged region a
-/// neighbour's best stays the same from loop to loop, and the same hypothesis on the same ray
-/// against the same images costs the same, bit for bit: it is looked up, not matched again.
-#[derive(Clone, Copy)]
-struct NeighbourCosts {
-    /// The `iterate` call that wrote them.
-    stamp: u32,
-    len: u8,
-    entries: [Particle; MAX_NEIGHBOUR_CANDIDATES],
-}
-
-/// Neighbour candidates per ray: four neighbours' previous best and the sweep's updated one.
-const MAX_NEIGHBOUR_CANDIDATES: usize = 5;
-
-impl Default for NeighbourCosts {
-    fn default() -> Self {
-        Self { stamp: u32::MAX, len: 0, entries: [Particle::EMPTY; MAX_NEIGHBOUR_CANDIDATES] }
-    }
-}
-
-impl NeighbourCosts {
-    #[inline(always)]
-    fn cost_of(&self, candidate: &Particle) -> Option<f32> {
-        let len = usize::from(self.len);
-        self.entries[..len].iter().find(|e| same_hypothesis(e, candidate)).map(|e| e.cost)
-    }
-
-    #[inline(always)]
-    fn remember(&mut self, candidates: &[Particle], stamp: u32) {
-        let len = candidates.len().min(MAX_NEIGHBOUR_CANDIDATES);
-        self.entries[..len].copy_from_slice(&candidates[..len]);
-        self.len = len as u8;
-        self.stamp = stamp;
-    }
-}
-
-/// Whether two candidates of one ray are the same hypothesis (bitwise equal depth and
-/// velocity), so that they have the same cost.
-#[inline(always)]
-fn same_hypothesis(a: &Particle, b: &Particle) -> bool {
-    a.depth.to_bits() == b.depth.to_bits() && (0..3).all(|i| a.velocity[i].to_bits() == b.velocity[i].to_bits())
 }
 
 /// The weighted mean of a ray's particles (the note on the prototype found it beats the
@@ -1662,56 +1580,6 @@ fn ray_grid(camera: &Camera, level: usize, with_rays: bool) -> RayGrid {
     RayGrid { width, height, dirs }
 }
 
-/// The camera looking from the most different direction than `reference`'s, under 90
-/// degrees (a camera behind the person sees no more of the hands), with three or more
-/// cameras: the second reference of [`EngineConfig::second_reference`].
-pub fn second_reference_camera(cameras: &[Camera], reference: usize) -> Option<usize> {
-    if cameras.len() < 3 {
-        return None;
-    }
-    let axis = |c: &Camera| c.rotation.matrix().row(2).transpose();
-    let a = axis(&cameras[reference]);
-    (0..cameras.len())
-        .filter(|&k| k != reference)
-        .map(|k| (k, a.dot(&axis(&cameras[k]))))
-        .filter(|&(_, cos)| cos > 0.0)
-        .min_by(|x, y| x.1.total_cmp(&y.1))
-        .map(|(k, _)| k)
-}
-
-/// Full-resolution pixels of `camera` whose ray, over `depth_range`, runs mostly through
-/// what the other camera (`seeing`, an image `width` x `height`) sees: at least half of
-/// its depths, spaced evenly in inverse depth, project inside that image.
-fn seen_by(camera: &Camera, seeing: &LevelProjection, width: u32, height: u32, depth_range: (f32, f32)) -> Vec<bool> {
-    const DEPTHS: usize = 16;
-    // Decided per ray of level 2 (a 4x4-pixel block): the mask follows the geometry, which
-    // changes slowly across the image.
-    const LEVEL: usize = 2;
-    let block = 1usize << LEVEL;
-    let grid = ray_grid(camera, LEVEL, true);
-    let centre = camera.centre();
-    let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
-    let (near, far) = (1.0 / depth_range.0, 1.0 / depth_range.1);
-    let inside = |p: [f32; 3]| in_image(seeing, width, height, p);
-    let ray_seen: Vec<bool> = grid
-        .dirs
-        .iter()
-        .map(|&dir| {
-            let seen = (0..DEPTHS)
-                .filter(|&k| {
-                    let inverse = near + (far - near) * (k as f32 + 0.5) / DEPTHS as f32;
-                    inside(point_on_ray(origin, dir, 1.0 / inverse))
-                })
-                .count();
-            2 * seen >= DEPTHS
-        })
-        .collect();
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    (0..w * h)
-        .map(|i| ray_seen[((i / w) / block).min(grid.height - 1) * grid.width + ((i % w) / block).min(grid.width - 1)])
-        .collect()
-}
-
 /// Whether world point `p` lies in front of the camera of `projection` and inside its
 /// `width` x `height` image (pixel centres at integers).
 fn in_image(projection: &LevelProjection, width: u32, height: u32, p: [f32; 3]) -> bool {
@@ -1741,14 +1609,14 @@ mod tests {
     use handflow_protocol::Distortion;
     use nalgebra::{Matrix3, Rotation3, Vector3};
 
-    fn camera(name: &str, x: f64) -> Camera {
+    pub(super) fn camera(name: &str, x: f64) -> Camera {
         let k = Matrix3::new(50.0, 0.0, 15.5, 0.0, 50.0, 11.5, 0.0, 0.0, 1.0);
         Camera::new(name, 32, 24, k, Distortion::default(), Rotation3::identity(), Vector3::new(-x, 0.0, 0.0))
             .expect("valid camera")
     }
 
     /// A 32x24 RGB view of a texture moved `shift` pixels to the right.
-    fn textured_view(shift: usize, seed: u32) -> Vec<u8> {
+    pub(super) fn textured_view(shift: usize, seed: u32) -> Vec<u8> {
         (0..24 * 32)
             .flat_map(|i| {
                 let (x, y) = ((i % 32 + 64 - shift) as u32, (i / 32) as u32);
@@ -1803,135 +1671,6 @@ mod tests {
         // An occluder in front of the skin in one view: that view's verdict is dropped.
         assert_eq!(log_weight([1.0, -2.0], true), 1.0);
         assert_eq!(log_weight([-1.0, 0.5], true), 0.5);
-    }
-
-    #[test]
-    fn reusing_last_loops_neighbour_costs_changes_nothing_but_the_work() {
-        let cameras = vec![camera("ref", 0.0), camera("a", 0.1), camera("b", -0.1)];
-        let config = EngineConfig { pyramid_levels: 2, coarse_extra_loops: 3, ..EngineConfig::default() };
-        let mut reusing = SceneFlowEngine::new(config.clone(), cameras.clone(), 0).unwrap();
-        let mut matching_all = SceneFlowEngine::new(config, cameras, 0).unwrap();
-        matching_all.reuse_neighbour_costs = false;
-        let (mut saved, mut estimates) = (0, 0);
-        for f in 0..4 {
-            let views = [textured_view(f, 1), textured_view(f + 2, 1), textured_view(f + 4, 1)];
-            let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
-            let a = reusing.push_frame(&views).unwrap().cloned();
-            let b = matching_all.push_frame(&views).unwrap().cloned();
-            assert_eq!(a.is_some(), b.is_some());
-            if let (Some(a), Some(b)) = (a, b) {
-                assert_eq!(
-                    a.depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
-                    b.depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
-                    "frame {f}"
-                );
-                assert_eq!(a.velocity, b.velocity, "frame {f}");
-                assert_eq!(a.confidence, b.confidence, "frame {f}");
-                assert!(reusing.stats().evaluations <= matching_all.stats().evaluations);
-                saved += matching_all.stats().evaluations - reusing.stats().evaluations;
-                estimates += 1;
-            }
-        }
-        assert!(estimates >= 2 && saved > 0, "{estimates} estimates, {saved} evaluations saved");
-    }
-
-    /// A camera at `x` looking along +z turned by `yaw_deg` about the vertical axis.
-    fn turned_camera(name: &str, x: f64, yaw_deg: f64) -> Camera {
-        let k = Matrix3::new(50.0, 0.0, 15.5, 0.0, 50.0, 11.5, 0.0, 0.0, 1.0);
-        let rotation = Rotation3::from_axis_angle(&Vector3::y_axis(), yaw_deg.to_radians());
-        let translation = -(rotation * Vector3::new(x, 0.0, 0.0));
-        Camera::new(name, 32, 24, k, Distortion::default(), rotation, translation).expect("valid camera")
-    }
-
-    #[test]
-    fn the_second_reference_looks_from_the_most_different_direction_in_front() {
-        let rig = vec![
-            turned_camera("front", 0.0, 0.0),
-            turned_camera("a little aside", 0.2, 20.0),
-            turned_camera("side", 0.5, 70.0),
-            turned_camera("behind", 1.0, 150.0),
-        ];
-        assert_eq!(second_reference_camera(&rig, 0), Some(2), "the side camera, not the one behind");
-        assert_eq!(second_reference_camera(&rig[..2], 0), None, "two cameras have no third view to match in");
-        assert_eq!(second_reference_camera(&[rig[0].clone(), rig[1].clone(), rig[3].clone()], 0), Some(1));
-    }
-
-    #[test]
-    fn a_second_reference_keeps_only_rays_the_reference_view_does_not_see() {
-        let reference = camera("ref", 0.0);
-        // 0.3 m to the right, looking the same way: its left edge looks into the reference's
-        // view at every depth from 0.5 m on, its right edge never does.
-        let second = camera("second", 0.3);
-        let seeing = LevelProjection::new(&reference, 0);
-        let seen = seen_by(&second, &seeing, 32, 24, (0.5, 5.0));
-        assert_eq!(seen.len(), 32 * 24);
-        assert!(seen[12 * 32], "left edge: seen by the reference");
-        assert!(!seen[12 * 32 + 31], "right edge: beyond the reference's image");
-        let engine = SceneFlowEngine::new(
-            EngineConfig { coverage: Coverage::Skin, second_reference: true, ..EngineConfig::default() },
-            vec![reference.clone(), second, camera("third", -0.1)],
-            0,
-        )
-        .unwrap();
-        let companion = engine.companion().expect("three cameras: a second reference");
-        assert_eq!(companion.reference(), 1);
-        assert!(engine.reference_sees([0.0, 0.0, 2.0]) && !engine.reference_sees([3.0, 0.0, 2.0]));
-        assert!(!engine.reference_sees([0.0, 0.0, -2.0]), "behind the camera");
-    }
-
-    #[test]
-    fn the_companion_estimates_the_same_frame_on_the_images_it_is_lent() {
-        let cameras = vec![camera("ref", 0.0), camera("second", 0.3), camera("third", -0.1)];
-        let config = EngineConfig {
-            coverage: Coverage::Skin,
-            second_reference: true,
-            pyramid_levels: 2,
-            coarse_extra_loops: 2,
-            ..EngineConfig::default()
-        };
-        let mut engine = SceneFlowEngine::new(config, cameras, 0).unwrap();
-        for f in 0..4 {
-            let views = [textured_view(f, 1), textured_view(f + 2, 1), textured_view(f + 4, 1)];
-            let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
-            let estimated = engine.push_frame(&views).unwrap().is_some();
-            let companion = engine.companion().unwrap();
-            assert_eq!(companion.frames_pushed, engine.frames_pushed, "frame {f}");
-            if estimated {
-                assert_eq!(companion.stats().frame, engine.stats().frame, "frame {f}");
-            }
-            // Lent for the estimate and taken back: one set of images for both.
-            assert!(companion.ring.iter().all(Vec::is_empty) && companion.skin_maps.iter().all(Vec::is_empty));
-        }
-        // A frame without the companion's reference view starts it afresh; the main goes on.
-        let views = [textured_view(5, 1), vec![0; 32 * 24 * 3], textured_view(9, 1)];
-        let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
-        assert!(engine.push_frame_partial(&views, 0b010).unwrap().is_some());
-        assert_eq!(engine.companion().unwrap().ring_len, 0);
-    }
-
-    #[test]
-    fn neighbour_costs_are_found_by_hypothesis_only() {
-        let p = Particle { depth: 1.25, velocity: [0.01, -0.02, 0.0], weight: 0.1, cost: 0.3 };
-        let q = Particle { depth: 1.5, cost: 0.7, ..p };
-        let mut memo = NeighbourCosts::default();
-        assert_eq!(memo.cost_of(&p), None);
-        memo.remember(&[p, q], 7);
-        assert_eq!((memo.stamp, memo.cost_of(&Particle { weight: 0.9, cost: f32::NAN, ..q })), (7, Some(0.7)));
-        assert_eq!(memo.cost_of(&Particle { depth: 1.0, ..p }), None);
-        // More candidates than slots: the first ones are kept.
-        memo.remember(&[q; MAX_NEIGHBOUR_CANDIDATES + 2], 8);
-        assert_eq!((usize::from(memo.len), memo.cost_of(&p)), (MAX_NEIGHBOUR_CANDIDATES, None));
-    }
-
-    #[test]
-    fn only_bitwise_equal_hypotheses_share_a_cost() {
-        let p = Particle { depth: 1.25, velocity: [0.01, -0.02, 0.0], weight: 0.1, cost: 0.3 };
-        // Weight and cost are not the hypothesis.
-        assert!(same_hypothesis(&p, &Particle { weight: 0.5, cost: 9.0, ..p }));
-        assert!(!same_hypothesis(&p, &Particle { depth: 1.250_001, ..p }));
-        assert!(!same_hypothesis(&p, &Particle { velocity: [0.01, -0.02, 1e-9], ..p }));
-        // Conservative: -0 and +0 are evaluated apart.
-        assert!(!same_hypothesis(&p, &Particle { velocity: [0.01, -0.02, -0.0], ..p }));
     }
 
     #[test]

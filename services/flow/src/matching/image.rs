@@ -144,7 +144,8 @@ impl ColourImage {
 
     /// Writes into `dst` this image halved: a separable [1 3 3 1]/8 filter centred between
     /// each pair of pixels, so that pixel `i` of the coarse image sits at `2i + 0.5` of this
-    /// one (the convention [`crate::camera::LevelProjection`] uses) and aliasing is damped.
+    /// one (the convention [`crate::matching::camera::LevelProjection`] uses) and aliasing is
+    /// damped.
     pub fn downsample_into(&self, dst: &mut ColourImage, scratch: &mut Vec<Rgba>) {
         use rayon::prelude::*;
         let (w, h) = (self.width, self.height);
@@ -186,7 +187,7 @@ fn horizontal_half(out: &mut [Rgba], width: usize, texel: impl Fn(usize) -> Rgba
     }
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// One row of normalised texels from interleaved RGB8.
     fn normalised_row(out: &mut [Rgba], rgb: &[u8], table: &[[f32; 256]; 3]) {
         for (d, px) in out.iter_mut().zip(rgb.chunks_exact(3)) {
@@ -195,7 +196,7 @@ crate::isa::vectorised_fn! {
     }
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// The horizontal pass of halving one RGB8 row `width` pixels wide, normalised on the way:
     /// what [`horizontal_half`] computes, bit for bit, but each input pixel is looked up once.
     /// Output `cx` reads pixels `2cx - 1 ..= 2cx + 2`; the last two are the next output's
@@ -215,7 +216,7 @@ crate::isa::vectorised_fn! {
     }
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// The horizontal pass of halving one row of texels.
     fn half_row(out: &mut [Rgba], row: &[Rgba]) {
         horizontal_half(out, row.len(), |x| row[x]);
@@ -233,7 +234,7 @@ fn vertical_half(scratch: &[Rgba], cw: usize, height: usize, dst: &mut ColourIma
     });
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// One output row of the vertical pass: texels of the four `scratch` rows starting at
     /// the offsets `rows`, filtered.
     fn vertical_half_row(out: &mut [Rgba], scratch: &[Rgba], rows: [usize; 4]) {
@@ -261,7 +262,7 @@ fn normalisation_table(width: usize, height: usize, rgb: &[u8]) -> [[f32; 256]; 
     std::array::from_fn(|c| std::array::from_fn(|v| ((v as f64 - mean[c]) * scale) as f32))
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// Per channel, the sum and the sum of squares of one RGB8 row.
     fn channel_sums(row: &[u8]) -> ([u64; 3], [u64; 3]) {
         let (mut s, mut q) = ([0u64; 3], [0u64; 3]);
@@ -396,7 +397,7 @@ impl ColourImage {
     }
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// Horizontal box sums of radius `r` along one row, of every channel and (pad lane) of
     /// the sum of squares over channels; the row's ends are clamped.
     fn box_sum_row(out: &mut [Rgba], row: &[Rgba], r: isize) {
@@ -414,7 +415,7 @@ crate::isa::vectorised_fn! {
     }
 }
 
-crate::isa::vectorised_fn! {
+crate::matching::isa::vectorised_fn! {
     /// Row `y` of local normalisation: the horizontal box sums (`sums`, rows as wide as
     /// `src`) of rows `y - r ..= y + r` (clamped) summed into `out`, then `src` normalised
     /// by the box's mean and deviation.

@@ -1,8 +1,8 @@
 //! How well a Scene Particle explains the images: the paper's colour variance (equations 3
 //! and 6) and handflow's robust windowed matching cost.
 
-use crate::camera::LevelProjection;
-use crate::image::{ColourImage, Rgba};
+use crate::matching::camera::LevelProjection;
+use crate::matching::image::{ColourImage, Rgba};
 
 /// Most images one likelihood looks at (3 frames x 8 cameras).
 pub const MAX_IMAGES: usize = 24;

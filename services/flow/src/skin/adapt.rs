@@ -1,5 +1,5 @@
 //! Keeps a rig's skin models adapted: every few frames, faces are detected in every view,
-//! checked against each other ([`crate::face_fusion`]) and used to adapt each camera's
+//! checked against each other ([`crate::skin::face_fusion`]) and used to adapt each camera's
 //! model. Between detections, and when no face is found, the models keep their state.
 
 use std::cell::RefCell;
@@ -7,9 +7,9 @@ use std::cell::RefCell;
 use handflow_protocol::Camera;
 use rayon::prelude::*;
 
-use crate::face_fusion::{face_width_px, fuse_faces_remembering, FusedFaces, KnownFace};
-use crate::faces::{detection_bin, FaceBox, FaceDetector, Region};
-use crate::skin::SkinModel;
+use crate::skin::face_fusion::{face_width_px, fuse_faces_remembering, FusedFaces, KnownFace};
+use crate::skin::faces::{detection_bin, FaceBox, FaceDetector, Region};
+use crate::skin::model::SkinModel;
 
 /// Adaptation rate per detection (default of [`SkinAdapter::new`]): a face seen a handful
 /// of times dominates the generic prior, one odd frame does not.

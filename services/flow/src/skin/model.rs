@@ -5,7 +5,7 @@
 //! detections: colours of the faces' central regions join the skin model, the rest of the
 //! image the background model. Equation 4: `h = sum_q min(log10(Ps(u)/Pbg(u)), alpha)`.
 
-use crate::faces::FaceBox;
+use crate::skin::faces::FaceBox;
 
 /// Bins per channel of the colour histograms (32^3 bins of 8 grey levels).
 pub const BINS: usize = 32;

@@ -1,6 +1,6 @@
 //! Scene Particles and the per-ray operations on them: diffusion and ray resampling.
 
-use crate::rng::RayRng;
+use crate::engine::rng::RayRng;
 
 /// One Scene Particle: a hypothesis of the 3D point on its ray and of that point's motion.
 ///
