@@ -29,6 +29,11 @@ pub struct EmConfig {
     /// metres away included) made the components nearly identical at first, and two hands
     /// 25 cm apart could end up in one component while the other wandered off to the neck.
     pub start_std: f64,
+    /// Largest standard deviation of the first component's position along any direction,
+    /// metres (default infinite: no bound). The cluster stage seeds the head there and bounds
+    /// it by a head's size, so that a hand raised near the face, or the skin of a neck and
+    /// chest, cannot stretch the head's Gaussian over itself and pull its centre away.
+    pub first_max_std: f64,
     /// Seed of the subsampling offset (default 0).
     pub seed: u64,
     /// Model points no Gaussian explains with a uniform density over the points' bounding
@@ -46,10 +51,31 @@ impl Default for EmConfig {
             max_points: 4000,
             min_std: 0.01,
             start_std: 0.05,
+            first_max_std: f64::INFINITY,
             seed: 0,
             outliers: true,
         }
     }
+}
+
+/// `cov` with its position block's spread bounded to `max_std` along every direction: the
+/// position block's eigenvalues above `max_std²` are brought down to it, and the
+/// position-velocity blocks scaled with them (`T C T` with `T` acting on positions only, so
+/// the result stays positive semi-definite).
+fn bounded_position_spread(cov: &Matrix6<f64>, max_std: f64) -> Matrix6<f64> {
+    let position: nalgebra::Matrix3<f64> = cov.fixed_view::<3, 3>(0, 0).into_owned();
+    let eigen = nalgebra::SymmetricEigen::new(position);
+    let limit = max_std * max_std;
+    if eigen.eigenvalues.iter().all(|&l| l <= limit) {
+        return *cov;
+    }
+    let shrink =
+        nalgebra::Matrix3::from_diagonal(&eigen.eigenvalues.map(|l| if l > limit { (limit / l).sqrt() } else { 1.0 }));
+    let t3 = eigen.eigenvectors * shrink * eigen.eigenvectors.transpose();
+    let mut t = Matrix6::identity();
+    t.fixed_view_mut::<3, 3>(0, 0).copy_from(&t3);
+    let bounded = t * cov * t;
+    0.5 * (bounded + bounded.transpose())
 }
 
 /// One fitted component, in the caller's units.
@@ -205,6 +231,9 @@ pub fn fit_mixture(
             let cov = second / mass - mean * mean.transpose() + Matrix6::identity() * floor;
             means[j] = mean;
             covs[j] = 0.5 * (cov + cov.transpose());
+            if j == 0 && config.first_max_std.is_finite() {
+                covs[j] = bounded_position_spread(&covs[j], config.first_max_std);
+            }
             mixing[j] = mass / wsum;
         }
         let explained: f64 = masses.iter().sum::<f64>() / wsum;
@@ -712,6 +741,25 @@ mod tests {
 
     proptest::proptest! {
         #[test]
+        fn a_bounded_spread_stays_a_covariance_within_its_bound(
+            entries in proptest::collection::vec(-0.5f64..0.5, 36),
+            max_std in 0.01f64..0.3,
+        ) {
+            // Any positive definite matrix: A Aᵀ plus a floor.
+            let a = Matrix6::from_iterator(entries);
+            let cov = a * a.transpose() + Matrix6::identity() * 1e-4;
+            let bounded = bounded_position_spread(&cov, max_std);
+            proptest::prop_assert!((bounded - bounded.transpose()).norm() < 1e-12);
+            proptest::prop_assert!(bounded.symmetric_eigen().eigenvalues.iter().all(|&e| e > -1e-12));
+            let position: nalgebra::Matrix3<f64> = bounded.fixed_view::<3, 3>(0, 0).into_owned();
+            let limit = max_std * max_std;
+            proptest::prop_assert!(position.symmetric_eigen().eigenvalues.iter().all(|&e| e <= limit * (1.0 + 1e-9)));
+            // Velocities keep their spread.
+            let velocity: nalgebra::Matrix3<f64> = bounded.fixed_view::<3, 3>(3, 3).into_owned();
+            proptest::prop_assert!((velocity - cov.fixed_view::<3, 3>(3, 3)).norm() < 1e-12);
+        }
+
+        #[test]
         fn any_small_set_fits_finitely(xs in proptest::collection::vec((-2.0f64..2.0, -1.0f64..1.0, 0.01f64..3.0), 1..50), c in -2.0f64..2.0) {
             let pts: Vec<WeightedPoint> = xs.iter().map(|&(x, v, w)| WeightedPoint { position: Vector3::new(x, x * x, 1.0), velocity: Vector3::new(v, 0.0, 0.0), weight: w }).collect();
             let init = [(Vector3::new(c, 0.0, 1.0), Vector3::zeros()), (Vector3::new(-c, 1.0, 1.0), Vector3::zeros()), (Vector3::new(0.0, 2.0, 1.0), Vector3::zeros())];
@@ -724,6 +772,47 @@ mod tests {
                 proptest::prop_assert!(comp.covariance.symmetric_eigen().eigenvalues.iter().all(|&e| e > 0.0));
             }
         }
+    }
+
+    /// The head's component after a fit of a face, the neck below it, a hand raised beside
+    /// the chin that no seed is on (its track sat elsewhere) and the other hand with its seed,
+    /// the head bounded to `first_max_std`: its largest positional standard deviation.
+    fn head_spread_beside_a_raised_hand(first_max_std: f64) -> f64 {
+        let mut rng = Normal(7);
+        let mut pts = blob(&mut rng, 1500, [0.0, 1.6, 0.0], [0.0; 3], 0.04, 0.05);
+        pts.extend(blob(&mut rng, 400, [0.0, 1.47, 0.0], [0.0; 3], 0.03, 0.05));
+        pts.extend(blob(&mut rng, 700, [0.2, 1.35, 0.15], [0.0, 0.5, 0.0], 0.03, 0.1));
+        pts.extend(blob(&mut rng, 700, [-0.3, 1.1, 0.3], [0.0; 3], 0.03, 0.1));
+        // Stray depths metres away, as every real scene has: the outlier class's uniform
+        // density over their box is then too thin to claim the raised hand.
+        pts.extend(blob(&mut rng, 20, [2.0, 0.5, 2.5], [0.0; 3], 1.0, 2.0));
+        let init = [(Vector3::new(0.0, 1.6, 0.0), Vector3::zeros()), (Vector3::new(-0.3, 1.1, 0.3), Vector3::zeros())];
+        let config = EmConfig { first_max_std, ..EmConfig::default() };
+        let head = fit_mixture(&pts, &init, &config).unwrap().components[0];
+        let position: nalgebra::Matrix3<f64> = head.covariance.fixed_view::<3, 3>(0, 0).into_owned();
+        position.symmetric_eigen().eigenvalues.max().sqrt()
+    }
+
+    #[test]
+    fn a_head_bounded_to_its_size_does_not_stretch_over_a_raised_hand() {
+        let unbounded = head_spread_beside_a_raised_hand(f64::INFINITY);
+        assert!(unbounded > 0.14, "unbounded, the head's Gaussian stretches over the hand: {unbounded}");
+        let bounded = head_spread_beside_a_raised_hand(0.1);
+        assert!(bounded <= 0.1 + 1e-9, "{bounded}");
+    }
+
+    #[test]
+    fn a_bounded_spread_keeps_small_covariances_and_caps_large_ones() {
+        let small = Matrix6::from_diagonal(&Vector6::new(0.004, 0.002, 0.001, 0.01, 0.01, 0.01));
+        assert_eq!(bounded_position_spread(&small, 0.1), small);
+        let mut stretched = small;
+        stretched[(0, 0)] = 0.09;
+        stretched[(0, 3)] = 0.02;
+        stretched[(3, 0)] = 0.02;
+        let capped = bounded_position_spread(&stretched, 0.1);
+        assert!((capped[(0, 0)] - 0.01).abs() < 1e-12, "{capped}");
+        assert!((capped[(1, 1)] - 0.002).abs() < 1e-12 && (capped[(3, 3)] - 0.01).abs() < 1e-12);
+        assert!((capped[(0, 3)] - 0.02 / 3.0).abs() < 1e-12, "the cross term scaled with the spread: {capped}");
     }
 
     #[test]

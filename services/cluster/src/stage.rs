@@ -23,6 +23,10 @@ pub const HAND_HALF_THICKNESS_M: f64 = 0.02;
 /// ([`surface_share`]): the full move, bounded at 4.5 cm, put the shared real session's head
 /// 3.8 cm behind its reference.
 pub const HEAD_MAX_RADIUS_M: f64 = 0.10;
+/// The largest spread of the head's points along any direction, metres (one standard
+/// deviation): a face and neck about 25 cm tall spread about 7 cm, and depth noise adds to it.
+/// The head's component is bounded by it ([`EmConfig::first_max_std`]).
+pub const HEAD_MAX_STD_M: f64 = 0.10;
 /// Components fitted besides head and hands, seeded at the points farthest from them: skin
 /// the three objects do not explain (the neck, a ghost, a hand seen split in two by another
 /// view's occlusion) gets a component of its own instead of pulling two hands into one.
@@ -143,7 +147,7 @@ impl ClusterStage {
         });
         Self {
             tracker: Tracker::new(TrackerConfig::default(), up, signer_left),
-            em: EmConfig::default(),
+            em: EmConfig { first_max_std: HEAD_MAX_STD_M, ..EmConfig::default() },
             points: Vec::new(),
             near_points: Vec::new(),
             eye: reference.centre(),
