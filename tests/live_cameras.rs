@@ -11,7 +11,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use handflow::eval::tracks::{evaluate_tracks, read_tracks};
-use handflow_e2e::{binaries_dir, exit_within, render_preset, spawn_lines, unique_prefix};
+use handflow_e2e::{binaries_dir, exit_within, render_preset, spawn_lines, track_with_cli, unique_prefix};
 use handflow_ingest::Recording;
 
 static ONE_PIPELINE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -229,15 +229,7 @@ fn a_lossless_recording_of_live_cameras_replays_to_the_live_runs_trajectories_fr
     let samples = std::fs::read_to_string(&live_out).unwrap().lines().count();
     assert!(samples >= 40, "{samples} samples of 44 (replay mode loses none):\n{log}");
     let replay_out = dir.path().join("replay.jsonl");
-    let status = Command::new(binaries_dir().join("handflow"))
-        .args(["track", "--recording"])
-        .arg(&recorded)
-        .arg("--out")
-        .arg(&replay_out)
-        .stderr(Stdio::null())
-        .status()
-        .unwrap();
-    assert!(status.success());
+    track_with_cli(&recorded, &replay_out);
     let (live, replay) = (read_tracks(&live_out).unwrap(), read_tracks(&replay_out).unwrap());
     assert_eq!(replay.len(), live.len(), "one trajectory sample per recorded frame set:\n{log}");
     // The same computation on the same pixels. The replay takes its frame rate from the

@@ -14,7 +14,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use handflow_e2e::browser::{chromium_binary, http_get, Browser};
-use handflow_e2e::{binaries_dir, exit_within, pids_of, render_preset, unique_prefix};
+use handflow_e2e::{binaries_dir, exit_within, pids_of, render_preset, track_with_cli, unique_prefix};
 use serde_json::Value;
 use tungstenite::client::IntoClientRequest;
 
@@ -252,16 +252,7 @@ fn a_replay_with_the_viewer_on_writes_what_track_writes() {
     let dir = tempfile::tempdir().unwrap();
     let rec = render_preset(dir.path(), "signer-3cam", 30, Some((320, 240)));
     let tracked = dir.path().join("tracked.jsonl");
-    let status = Command::new(binaries_dir().join("handflow"))
-        .args(["track", "--recording"])
-        .arg(&rec)
-        .arg("--out")
-        .arg(&tracked)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .unwrap();
-    assert!(status.success(), "`handflow track` failed");
+    track_with_cli(&rec, &tracked);
     for run in 0..2 {
         let out = dir.path().join(format!("replayed-{run}.jsonl"));
         let log = dir.path().join(format!("run-{run}.log"));

@@ -71,6 +71,21 @@ pub fn render_preset(dir: &std::path::Path, preset: &str, frames: u32, size: Opt
     out
 }
 
+/// Runs `handflow track` on `recording`, writing its trajectories to `out`, and checks that it
+/// succeeded: the file a replay of the same recording must match.
+pub fn track_with_cli(recording: &std::path::Path, out: &std::path::Path) {
+    let status = Command::new(binaries_dir().join("handflow"))
+        .args(["track", "--recording"])
+        .arg(recording)
+        .arg("--out")
+        .arg(out)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .expect("`handflow track` starts");
+    assert!(status.success(), "`handflow track --recording {}` failed", recording.display());
+}
+
 /// Process ids of running `binary` processes whose command line holds `needle`.
 pub fn pids_of(binary: &str, needle: &str) -> Vec<i32> {
     let Ok(entries) = std::fs::read_dir("/proc") else { return Vec::new() };
