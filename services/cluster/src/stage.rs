@@ -9,7 +9,7 @@ use handflow_protocol::Camera;
 use nalgebra::{Point3, Vector3};
 
 use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, side_extremity, Component, EmConfig, EmFit};
-use crate::hand::locate_hand;
+use crate::hand::{continuity_weight, locate_hand};
 use crate::tracks::{HeadAnchor, Measurement, NotStarted, State, Tracker, TrackerConfig};
 use crate::WeightedPoint;
 
@@ -197,6 +197,17 @@ impl ClusterStage {
                 let sight = (f.centre - self.eye.coords).try_normalize(1e-9).unwrap_or_else(Vector3::zeros);
                 HeadAnchor { face: f.centre, head: f.centre + sight * FACE_TO_HEAD_CENTRE_M }
             });
+        // Where each hand measured in the last frame is expected now, and how much that
+        // says of which end of an arm's skin is the hand: less as the interval grows.
+        let miss_m = 0.5 * self.tracker.config().max_acceleration_m_s2 * (t - self.tracker.time()).powi(2);
+        let weight = continuity_weight(miss_m);
+        let expected_hands: [Option<(Vector3<f64>, f64)>; 3] =
+            match (self.tracker.predictions(t), self.tracker.tracks(), weight > 0.0) {
+                (Some(p), Some(tracks), true) => std::array::from_fn(|k| {
+                    (tracks[k].state == State::Tracked && tracks[k].unmeasured == 0).then_some((p[k].0, weight))
+                }),
+                _ => [None; 3],
+            };
         let mut initial = match self.tracker.predictions(t) {
             Some(p) => Some(p),
             None => extremity_means(&self.points, self.up, self.signer_left),
@@ -277,8 +288,14 @@ impl ClusterStage {
         if let (Some(fit), Some(raw), true) = (&fit, &raw, self.hand_localisation) {
             for k in 1..3 {
                 let (State::Tracked, Some(m)) = (tracks[k].state, self.tracker.assigned()[k]) else { continue };
-                let Some(found) = locate_hand(&self.points, &raw.components, m.cluster, tracks[0].position, self.up)
-                else {
+                let Some(found) = locate_hand(
+                    &self.points,
+                    &raw.components,
+                    m.cluster,
+                    tracks[0].position,
+                    self.up,
+                    expected_hands[k],
+                ) else {
                     continue;
                 };
                 tracing::trace!(

@@ -297,6 +297,11 @@ impl Tracker {
         self.reinitialisations
     }
 
+    /// Time of the last update, seconds.
+    pub fn time(&self) -> f64 {
+        self.time
+    }
+
     /// Constant-velocity predictions at time `t` (seconds), in track order, to initialise
     /// the next EM fit; `None` before the first measurement or when every track is lost.
     pub fn predictions(&self, t: f64) -> Option<[(Vector3<f64>, Vector3<f64>); 3]> {
