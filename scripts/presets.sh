@@ -27,7 +27,11 @@ for p in "${presets[@]}"; do
     "$bin" eval tracks --recording "$rec" --tracks "$out/$name.jsonl" --json | python3 -c '
 import json, sys
 r = json.load(sys.stdin)
-cells = ["%.1f %% / %.1f cm" % (100 * r[o]["agreement"], 100 * r[o]["rmse_3d_m"]) for o in ("head", "left_hand", "right_hand")]
+def cell(o):
+    rmse = "-" if o["rmse_3d_m"] is None else "%.1f cm" % (100 * o["rmse_3d_m"])
+    lost = " (%d lost)" % o["misses"] if o["misses"] else ""
+    return "%.1f %% / %s%s" % (100 * o["agreement"], rmse, lost)
+cells = [cell(r[o]) for o in ("head", "left_hand", "right_hand")]
 print("| %s | %s | %d |" % (sys.argv[1], " | ".join(cells), r["identity_switches"]))
 ' "$name"
 done

@@ -1055,7 +1055,12 @@ fn run_streaming(args: &RunArgs) -> Result<()> {
             let s = evaluate_tracks(&rec, &read_tracks(&out_path)?)?;
             out!("against the recording's truth ({} frames, {} identity switches):", s.frames, s.identity_switches);
             for (name, o) in [("head", &s.head), ("left_hand", &s.left_hand), ("right_hand", &s.right_hand)] {
-                out!("  {name:<11} agreement {:6.1} %  3D rmse {:.3} m", o.agreement * 100.0, o.rmse_3d_m);
+                out!(
+                    "  {name:<11} agreement {:6.1} %  3D rmse {:.3} m  misses {}",
+                    o.agreement * 100.0,
+                    o.rmse_3d_m,
+                    o.misses
+                );
             }
         }
     }
@@ -1524,11 +1529,12 @@ fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
     );
     for (name, o) in [("head", &s.head), ("left_hand", &s.left_hand), ("right_hand", &s.right_hand)] {
         out!(
-            "  {name:<11} agreement {:6.1} %  rms {:.3} / {:.3} palm widths (x / y)  3D rmse {:.3} m",
+            "  {name:<11} agreement {:6.1} %  rms {:.3} / {:.3} palm widths (x / y)  3D rmse {:.3} m  misses {}",
             o.agreement * 100.0,
             o.rms_palm_x,
             o.rms_palm_y,
-            o.rmse_3d_m
+            o.rmse_3d_m,
+            o.misses
         );
     }
     Ok(())

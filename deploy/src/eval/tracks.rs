@@ -1,7 +1,11 @@
 //! `handflow eval tracks`: trajectories against a recording's ground truth, as in
 //! EVALUATION.md section 2: per object the agreement rate (projection within a third of a
 //! palm width of the true position in every view that sees it), RMS image distance in palm
-//! widths (X and Y), 3D RMS error, and identity switches.
+//! widths (X and Y), 3D RMS error, and identity switches. A `lost` estimate is a miss, as
+//! against a reference tracker (section 2b): it never agrees, and the RMS figures are over
+//! the frames with an estimate (a lost track's published position is a placeholder, and an
+//! error measured from it would say where the world's origin is, not how far off the track
+//! is).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -9,7 +13,8 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use handflow_cluster::tracks::OBJECTS;
 use handflow_ingest::Recording;
-use handflow_publish::TrajectoryRecord;
+use handflow_protocol::Camera;
+use handflow_publish::{TrackState, TrajectoryRecord};
 use nalgebra::Point3;
 use serde::Deserialize;
 
@@ -24,14 +29,18 @@ pub struct ObjectScores {
     /// Share of scored frames whose estimate projects within a third of a palm width of the
     /// truth in every view that sees the object.
     pub agreement: f64,
-    /// RMS horizontal image distance, palm widths (over frames and views that see it).
+    /// RMS horizontal image distance, palm widths (over the views that see it in frames
+    /// with an estimate).
     pub rms_palm_x: f64,
     /// RMS vertical image distance, palm widths.
     pub rms_palm_y: f64,
-    /// RMS 3D distance, metres.
+    /// RMS 3D distance over the frames with an estimate, metres (`NaN`, `null` in JSON,
+    /// when every frame is a miss).
     pub rmse_3d_m: f64,
     /// Frames scored (the object is visible in at least one view).
     pub frames: usize,
+    /// Scored frames whose estimate is `lost`: they count against `agreement`.
+    pub misses: usize,
 }
 
 /// Scores of a whole run.
@@ -43,7 +52,8 @@ pub struct TrackScores {
     pub left_hand: ObjectScores,
     /// The signer's right hand.
     pub right_hand: ObjectScores,
-    /// Frames where the labels that best match the truth change (two labels swap).
+    /// Frames where the labels that best match the truth change (two labels swap), judged on
+    /// the frames where no track is lost.
     pub identity_switches: usize,
     /// Frames compared.
     pub frames: usize,
@@ -75,6 +85,8 @@ struct Sums {
     dy2: f64,
     views: usize,
     e2: f64,
+    measured: usize,
+    misses: usize,
 }
 
 /// Reads a trajectory file (JSON Lines), naming the line of any error.
@@ -95,8 +107,17 @@ pub fn evaluate_tracks(rec: &Recording, records: &[TrajectoryRecord]) -> Result<
     let path = rec.truth_path().with_context(|| format!("recording `{}` has no truth.json", rec.dir().display()))?;
     let text = handflow_protocol::read_text_capped(path).with_context(|| format!("reading `{}`", path.display()))?;
     let truth: Truth = serde_json::from_str(&text).with_context(|| format!("`{}`", path.display()))?;
-    let by_frame: BTreeMap<u64, &TruthFrame> = truth.frames.iter().map(|f| (f.frame, f)).collect();
-    let cameras = &rec.rig().cameras;
+    score_tracks(&rec.rig().cameras, &truth.frames, records, path)
+}
+
+/// Scores `records` against the truth's frames (`path` names the truth in errors).
+fn score_tracks(
+    cameras: &[Camera],
+    truth: &[TruthFrame],
+    records: &[TrajectoryRecord],
+    path: &Path,
+) -> Result<TrackScores> {
+    let by_frame: BTreeMap<u64, &TruthFrame> = truth.iter().map(|f| (f.frame, f)).collect();
     let mut sums: [Sums; 3] = Default::default();
     let mut switches = 0;
     let mut labelling = [0usize, 1, 2];
@@ -107,6 +128,7 @@ pub fn evaluate_tracks(rec: &Recording, records: &[TrajectoryRecord]) -> Result<
             .with_context(|| format!("trajectory frame {} is not in `{}`", record.frame, path.display()))?;
         let mut estimates = [[f64::NAN; 3]; 3];
         let mut truths = [[f64::NAN; 3]; 3];
+        let mut all_estimated = true;
         for (k, name) in OBJECTS.iter().enumerate() {
             let est =
                 record.objects.get(*name).with_context(|| format!("trajectory frame {}: no `{name}`", record.frame))?;
@@ -116,6 +138,8 @@ pub fn evaluate_tracks(rec: &Recording, records: &[TrajectoryRecord]) -> Result<
                 .with_context(|| format!("`{}` frame {}: no `{name}`", path.display(), record.frame))?;
             estimates[k] = est.pos;
             truths[k] = truth.pos;
+            let lost = est.state == TrackState::Lost;
+            all_estimated &= !lost;
             let p = Point3::from(est.pos);
             let mut seen = false;
             let mut agrees = true;
@@ -127,6 +151,10 @@ pub fn evaluate_tracks(rec: &Recording, records: &[TrajectoryRecord]) -> Result<
                 }
                 let palm_px = PALM_WIDTH_M * cam.matrix[(0, 0)] / depth;
                 seen = true;
+                if lost {
+                    agrees = false;
+                    continue;
+                }
                 let (dx, dy) = match cam.project(&p) {
                     Some(q) => ((q.x - px[0]) / palm_px, (q.y - px[1]) / palm_px),
                     // Behind the camera: as far off as the image is wide.
@@ -140,14 +168,21 @@ pub fn evaluate_tracks(rec: &Recording, records: &[TrajectoryRecord]) -> Result<
             if seen {
                 sums[k].frames += 1;
                 sums[k].agreed += usize::from(agrees);
-                sums[k].e2 += (p - Point3::from(truth.pos)).norm_squared();
+                if lost {
+                    sums[k].misses += 1;
+                } else {
+                    sums[k].e2 += (p - Point3::from(truth.pos)).norm_squared();
+                    sums[k].measured += 1;
+                }
             }
         }
         // The labelling that matches the truth best; a change is an identity switch.
-        let best = best_labelling(&estimates, &truths);
-        if best != labelling {
-            switches += 1;
-            labelling = best;
+        if all_estimated {
+            let best = best_labelling(&estimates, &truths);
+            if best != labelling {
+                switches += 1;
+                labelling = best;
+            }
         }
         frames += 1;
     }
@@ -155,8 +190,9 @@ pub fn evaluate_tracks(rec: &Recording, records: &[TrajectoryRecord]) -> Result<
         agreement: s.agreed as f64 / s.frames.max(1) as f64,
         rms_palm_x: (s.dx2 / s.views.max(1) as f64).sqrt(),
         rms_palm_y: (s.dy2 / s.views.max(1) as f64).sqrt(),
-        rmse_3d_m: (s.e2 / s.frames.max(1) as f64).sqrt(),
+        rmse_3d_m: if s.measured == 0 { f64::NAN } else { (s.e2 / s.measured as f64).sqrt() },
         frames: s.frames,
+        misses: s.misses,
     };
     Ok(TrackScores {
         head: scores(&sums[0]),
@@ -186,6 +222,66 @@ pub(crate) fn best_labelling(estimates: &[[f64; 3]; 3], truths: &[[f64; 3]; 3]) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::eval::reference::tests::rig3;
+    use handflow_publish::ObjectSample;
+
+    const TRUE: [[f64; 3]; 3] = [[0.0, 0.5, 0.0], [0.25, 0.0, 0.1], [-0.25, 0.0, 0.1]];
+
+    fn truth_frame(cameras: &[Camera], frame: u64) -> TruthFrame {
+        let objects = OBJECTS
+            .iter()
+            .zip(TRUE)
+            .map(|(name, pos)| {
+                let pixel = cameras.iter().map(|c| c.project(&Point3::from(pos)).map(|q| [q.x, q.y])).collect();
+                ((*name).to_owned(), TruthObject { pos, pixel, visible: vec![true; cameras.len()] })
+            })
+            .collect();
+        TruthFrame { frame, objects }
+    }
+
+    fn record(frame: u64, objects: [([f64; 3], TrackState); 3]) -> TrajectoryRecord {
+        TrajectoryRecord {
+            frame,
+            t: frame as f64 / 30.0,
+            objects: OBJECTS
+                .iter()
+                .zip(objects)
+                .map(|(n, (pos, state))| ((*n).to_owned(), ObjectSample { pos, vel: [0.0; 3], confidence: 1.0, state }))
+                .collect(),
+            dropped_frames: 0,
+            missing_views: 0,
+        }
+    }
+
+    #[test]
+    fn a_lost_track_is_a_miss_not_an_error_from_the_worlds_origin() {
+        let rig = rig3();
+        let truth: Vec<TruthFrame> = (0..4).map(|f| truth_frame(&rig.cameras, f)).collect();
+        let tracked = |k: usize, dz: f64| ([TRUE[k][0], TRUE[k][1], TRUE[k][2] + dz], TrackState::Tracked);
+        // The head 2 cm off throughout; the left hand exact but lost in the first two frames,
+        // published at the origin, as the tracker does before a track starts; the right hand
+        // exact.
+        let records: Vec<TrajectoryRecord> = (0..4)
+            .map(|f| {
+                let left = if f < 2 { ([0.0; 3], TrackState::Lost) } else { tracked(1, 0.0) };
+                record(f, [tracked(0, 0.02), left, tracked(2, 0.0)])
+            })
+            .collect();
+        let s = score_tracks(&rig.cameras, &truth, &records, Path::new("truth.json")).expect("scores");
+        assert_eq!(s.frames, 4);
+        assert!((s.head.rmse_3d_m - 0.02).abs() < 1e-12, "{s:?}");
+        assert_eq!((s.head.misses, s.head.agreement), (0, 1.0));
+        assert_eq!((s.left_hand.frames, s.left_hand.misses), (4, 2));
+        assert_eq!(s.left_hand.agreement, 0.5);
+        assert!(s.left_hand.rmse_3d_m < 1e-12 && s.left_hand.rms_palm_x < 1e-9, "{s:?}");
+        // A lost hand at the origin is not a swap with the other.
+        assert_eq!(s.identity_switches, 0);
+        // Every frame lost: no error to report, and never a division by zero.
+        let lost: Vec<TrajectoryRecord> =
+            (0..4).map(|f| record(f, [tracked(0, 0.0), ([0.0; 3], TrackState::Lost), tracked(2, 0.0)])).collect();
+        let s = score_tracks(&rig.cameras, &truth, &lost, Path::new("truth.json")).expect("scores");
+        assert!(s.left_hand.rmse_3d_m.is_nan() && s.left_hand.agreement == 0.0, "{s:?}");
+    }
 
     #[test]
     fn the_labelling_follows_a_swap_and_ignores_noise() {
