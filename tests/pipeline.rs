@@ -557,7 +557,7 @@ fn a_second_pipeline_under_a_running_ones_prefix_is_refused_and_other_users_neve
     let out = dir.path().join("first.jsonl");
     let mut first =
         launcher(&["--preset", "signer-3cam", "--mode", "live", "--loop", "--services", &prefix, "--out", str(&out)]);
-    let _first_log = Log::capture(&mut first);
+    let first_log = Log::capture(&mut first);
     let started = Instant::now();
     while lines_in(&out) < 3 {
         assert!(started.elapsed() < Duration::from_secs(120), "the first pipeline publishes");
@@ -578,8 +578,12 @@ fn a_second_pipeline_under_a_running_ones_prefix_is_refused_and_other_users_neve
     let second_log = Log::capture(&mut second);
     let status = wait_with_timeout(&mut second, Duration::from_secs(30));
     let text = second_log.text();
-    assert!(!status.success(), "the second pipeline must not start:\n{text}");
-    assert!(text.contains("already running under the services prefix") && text.contains(&prefix), "{text}");
+    let first_text = first_log.text();
+    assert!(!status.success(), "the second pipeline must not start:\n{text}\nthe first's log:\n{first_text}");
+    assert!(
+        text.contains("already running under the services prefix") && text.contains(&prefix),
+        "{text}\nthe first's log:\n{first_text}"
+    );
     assert!(!second_out.exists(), "the refused pipeline writes nothing");
     if can_run_as_nobody() {
         // Another user's subscriber lives in its own iceoryx2 namespace: it starts (iceoryx2's

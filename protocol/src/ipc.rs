@@ -270,6 +270,44 @@ impl UserNamespace {
         }
     }
 
+    /// The lock file a launcher holds while it runs a pipeline under `prefix`; the prefix is
+    /// escaped so that every prefix has a file of its own in this one directory.
+    pub fn pipeline_lock_path(&self, prefix: &str) -> std::path::PathBuf {
+        let mut name = String::from("pipeline-");
+        for byte in prefix.bytes() {
+            if byte.is_ascii_alphanumeric() || byte == b'-' || byte == b'.' {
+                name.push(byte as char);
+            } else {
+                name.push_str(&format!("_{byte:02x}"));
+            }
+        }
+        name.push_str(".lock");
+        std::path::Path::new(&self.root_dir()).join(name)
+    }
+
+    /// Takes the lock of the pipeline under `prefix`: `Ok(None)` when another process holds
+    /// it. The operating system releases it when the holder exits, however it exits, so a
+    /// killed launcher never leaves a stale lock behind (a file's presence would).
+    pub fn lock_pipeline(&self, prefix: &str) -> Result<Option<std::fs::File>, String> {
+        let path = self.pipeline_lock_path(prefix);
+        // The mode iceoryx2 gives the directory, should the lock be the first to need it.
+        std::os::unix::fs::DirBuilderExt::mode(std::fs::DirBuilder::new().recursive(true), 0o750)
+            .create(self.root_dir())
+            .map_err(|e| format!("`{}`: {e}", self.root_dir()))?;
+        self.check_owner()?;
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&path)
+            .map_err(|e| format!("`{}`: {e}", path.display()))?;
+        match file.try_lock() {
+            Ok(()) => Ok(Some(file)),
+            Err(std::fs::TryLockError::WouldBlock) => Ok(None),
+            Err(std::fs::TryLockError::Error(e)) => Err(format!("locking `{}`: {e}", path.display())),
+        }
+    }
+
     /// iceoryx2's settings (its global configuration, if the user has one) with this
     /// namespace's directory and prefix.
     pub fn config(&self) -> Result<iceoryx2::config::Config, String> {
@@ -865,12 +903,20 @@ pub fn wait_for_rig(node: &IpcNode, names: &ServiceNames) -> Result<Option<(RigH
 /// on the machine; services carry the pipeline's prefix, so this tells pipelines apart.
 pub fn stage_health(node: &IpcNode, names: &ServiceNames) -> Vec<(&'static str, bool)> {
     let mut alive = std::collections::HashSet::new();
-    let _ = Node::<Ipc>::list(node.config(), |state| {
-        if let NodeState::Alive(view) = state {
-            alive.insert(*iceoryx2::node::NodeView::id(&view));
+    // A listing can fail part-way (a node created or removed meanwhile, an interrupted
+    // lock query): the nodes seen so far are kept and the listing is tried again.
+    for _ in 0..3 {
+        let listed = Node::<Ipc>::list(node.config(), |state| {
+            if let NodeState::Alive(view) = state {
+                alive.insert(*iceoryx2::node::NodeView::id(&view));
+            }
+            CallbackProgression::Continue
+        });
+        if listed.is_ok() {
+            break;
         }
-        CallbackProgression::Continue
-    });
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let publishing = |service: Option<&iceoryx2::service::dynamic_config::publish_subscribe::DynamicConfig<_>>| {
         let mut any = false;
         if let Some(config) = service {
@@ -974,6 +1020,28 @@ mod tests {
     fn a_late_live_frames_subscriber_gets_the_last_two_frame_sets_and_a_replay_one_none() {
         assert_eq!(late_subscriber_is_handed(Mode::Live), vec![1, 2]);
         assert_eq!(late_subscriber_is_handed(Mode::Replay), Vec::<u64>::new());
+    }
+
+    #[test]
+    fn a_pipeline_lock_is_refused_while_held_and_free_once_dropped() {
+        let namespace = UserNamespace::of_this_process().unwrap();
+        let prefix = format!("lock-test/{}-{:?}", std::process::id(), std::thread::current().id());
+        let held = namespace.lock_pipeline(&prefix).unwrap();
+        assert!(held.is_some(), "a free prefix is locked");
+        assert!(namespace.lock_pipeline(&prefix).unwrap().is_none(), "a held lock is refused");
+        drop(held);
+        assert!(namespace.lock_pipeline(&prefix).unwrap().is_some(), "a dropped lock is free again");
+        let _ = std::fs::remove_file(namespace.pipeline_lock_path(&prefix));
+    }
+
+    #[test]
+    fn every_prefix_has_a_lock_file_of_its_own_in_the_namespace() {
+        let namespace = UserNamespace::new(1000);
+        let a = namespace.pipeline_lock_path("rig/a");
+        let b = namespace.pipeline_lock_path("rig_a");
+        assert_ne!(a, b);
+        assert_eq!(a.parent().unwrap(), std::path::Path::new("/tmp/handflow-iox2-1000/"));
+        assert!(!a.file_name().unwrap().to_str().unwrap().contains('/'));
     }
 
     #[test]

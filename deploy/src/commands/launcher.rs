@@ -459,6 +459,9 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
         tracing::info!("cleaned up {cleaned} dead node(s) of an earlier run");
     }
     let names = ipc::ServiceNames::new(&p.services);
+    // Held until this run ends: a second launcher under the same prefix is refused by the
+    // lock, stages started by hand by their services.
+    let _lock = lock_the_prefix(&names)?;
     refuse_a_running_pipeline(&node, &names)?;
     // How far ingest and the publisher have got, for a stage that has to be restarted.
     let progress = Progress {
@@ -478,6 +481,20 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
 
 /// Starts the stages and watches them; `Ok(true)` when the stream ended, `Ok(false)` when
 /// interrupted.
+/// The lock of this prefix's pipeline, or an error naming who holds it.
+fn lock_the_prefix(names: &ipc::ServiceNames) -> Result<std::fs::File> {
+    let namespace = ipc::UserNamespace::of_this_process().map_err(|e| anyhow::anyhow!(e))?;
+    match namespace.lock_pipeline(names.prefix()).map_err(|e| anyhow::anyhow!(e))? {
+        Some(lock) => Ok(lock),
+        None => bail!(
+            "a pipeline is already running under the services prefix `{}` (its launcher holds `{}`); stop it, or \
+             give this one its own prefix with `--services NAME` (or `services = \"NAME\"` in the pipeline file)",
+            names.prefix(),
+            namespace.pipeline_lock_path(names.prefix()).display()
+        ),
+    }
+}
+
 /// Two pipelines under one prefix would mix their streams: the second is refused.
 fn refuse_a_running_pipeline(node: &ipc::IpcNode, names: &ipc::ServiceNames) -> Result<()> {
     let running: Vec<&str> = ipc::stage_health(node, names).into_iter().filter(|(_, up)| *up).map(|(s, _)| s).collect();
