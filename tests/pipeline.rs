@@ -28,20 +28,31 @@ fn serial() -> std::sync::MutexGuard<'static, ()> {
 
 /// Standard error of a child, line by line, with the time each line arrived.
 #[derive(Clone, Default)]
-struct Log(Arc<Mutex<Vec<(Instant, String)>>>);
+struct Log(Arc<Mutex<Vec<(Instant, String)>>>, Arc<std::sync::atomic::AtomicBool>);
 
 impl Log {
     fn capture(child: &mut Child) -> Self {
         let log = Log::default();
         let stderr = child.stderr.take().unwrap();
-        let lines = log.0.clone();
+        let (lines, ended) = (log.0.clone(), log.1.clone());
         std::thread::spawn(move || {
             for line in BufReader::new(stderr).lines() {
                 let Ok(line) = line else { break };
                 lines.lock().unwrap().push((Instant::now(), line));
             }
+            ended.store(true, std::sync::atomic::Ordering::SeqCst);
         });
         log
+    }
+
+    /// The whole log of a child that has exited: its last lines may still be on their way
+    /// through the pipe when its exit is seen.
+    fn complete_text(&self, timeout: Duration) -> String {
+        let started = Instant::now();
+        while !self.1.load(std::sync::atomic::Ordering::SeqCst) && started.elapsed() < timeout {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        self.text()
     }
 
     fn text(&self) -> String {
@@ -94,7 +105,7 @@ fn replay_through_the_four_processes_matches_the_truth_and_the_offline_tracker_f
     let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
     let log = Log::capture(&mut run);
     let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    assert!(status.success(), "the run failed:\n{}", log.text());
+    assert!(status.success(), "the run failed:\n{}", log.complete_text(Duration::from_secs(5)));
 
     let streamed = read_tracks(&out).unwrap();
     let numbers: Vec<u64> = streamed.iter().map(|r| r.frame).collect();
@@ -169,7 +180,7 @@ fn kill_mid_stream(binary: &str, rec_dir: &Path, frames: u32) {
     let (mut run, log, killed_at) = replay_and_kill(binary, rec_dir, &out);
 
     let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    let text = log.text();
+    let text = log.complete_text(Duration::from_secs(5));
     assert!(status.success(), "the run failed after the kill:\n{text}");
     let restarted = log.first_after(killed_at, &["restarting it"]).expect("the launcher restarts the stage");
     let stage = binary.trim_start_matches("handflow-");
@@ -213,7 +224,7 @@ fn killing_ingest_mid_stream_resumes_where_the_stream_was() {
     let out = dir.path().join("trajectories.jsonl");
     let (mut run, log, _) = replay_and_kill("handflow-ingest", &rec_dir, &out);
     let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    let text = log.text();
+    let text = log.complete_text(Duration::from_secs(5));
     assert!(status.success(), "the run failed after the kill:\n{text}");
     assert!(text.contains("restarting it"), "the launcher restarts ingest:\n{text}");
     assert!(text.contains("resuming the stream at frame set"), "ingest resumes, not from frame 0:\n{text}");
@@ -261,7 +272,7 @@ fn a_restarted_replay_ingest_waits_for_a_busy_flow_stage_instead_of_skipping_fra
     std::thread::sleep(Duration::from_secs(1));
     signal(flow[0], nix::sys::signal::Signal::SIGCONT);
     let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    let text = log.text();
+    let text = log.complete_text(Duration::from_secs(5));
     assert!(status.success(), "the run failed:\n{text}");
     let records = read_tracks(&out).unwrap();
     let present: BTreeSet<u64> = records.iter().map(|r| r.frame).collect();
@@ -356,7 +367,7 @@ fn a_truncated_image_in_the_middle_is_skipped_by_track_and_by_run_and_every_othe
     let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
     let log = Log::capture(&mut run);
     let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    let text = log.text();
+    let text = log.complete_text(Duration::from_secs(5));
     assert!(status.success(), "the run failed:\n{text}");
     assert!(!text.contains("restarting it"), "no stage died:\n{text}");
     assert!(text.contains("frame set 4 skipped") && text.contains("000004.png"), "one error naming the frame:\n{text}");
@@ -577,7 +588,7 @@ fn a_second_pipeline_under_a_running_ones_prefix_is_refused_and_other_users_neve
     ]);
     let second_log = Log::capture(&mut second);
     let status = wait_with_timeout(&mut second, Duration::from_secs(30));
-    let text = second_log.text();
+    let text = second_log.complete_text(Duration::from_secs(10));
     let first_text = first_log.text();
     assert!(!status.success(), "the second pipeline must not start:\n{text}\nthe first's log:\n{first_text}");
     assert!(
@@ -623,7 +634,7 @@ fn killing_the_publisher_keeps_its_file_and_its_count_of_losses() {
     let out = dir.path().join("trajectories.jsonl");
     let (mut run, log, _) = replay_and_kill("handflow-publish", &rec_dir, &out);
     let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    let text = log.text();
+    let text = log.complete_text(Duration::from_secs(5));
     assert!(status.success(), "the run failed after the kill:\n{text}");
     assert!(text.contains("going on from sequence"), "the publisher resumes its count:\n{text}");
     let records = read_tracks(&out).unwrap();
@@ -650,7 +661,7 @@ fn a_stage_that_fails_at_start_on_bad_input_ends_the_run_instead_of_restarting_f
         launcher(&["--recording", str(&rec_dir), "--services", &prefix, "--out", str(&dir.path().join("t.jsonl"))]);
     let log = Log::capture(&mut run);
     let status = wait_with_timeout(&mut run, Duration::from_secs(60));
-    let text = log.text();
+    let text = log.complete_text(Duration::from_secs(5));
     assert!(!status.success(), "{text}");
     assert!(text.contains("rig.toml") && text.contains("not restarting it"), "{text}");
     assert_eq!(text.matches("started ingest").count(), 1, "{text}");
@@ -724,7 +735,7 @@ fn a_stage_stopped_and_continued_goes_on_without_a_restart() {
     wait_for_more_lines(&out, &log);
     let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(run.id() as i32), nix::sys::signal::Signal::SIGINT);
     wait_with_timeout(&mut run, Duration::from_secs(30));
-    let text = log.text();
+    let text = log.complete_text(Duration::from_secs(5));
     assert!(!text.contains("restarting it"), "a stopped stage is not a dead one:\n{text}");
 }
 
@@ -767,7 +778,7 @@ fn a_paced_ingest_and_the_launcher_stopped_and_continued_go_on_without_a_restart
     assert!(run.try_wait().unwrap().is_none(), "the launcher is still running:\n{}", log.text());
     let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(run.id() as i32), nix::sys::signal::Signal::SIGINT);
     wait_with_timeout(&mut run, Duration::from_secs(30));
-    let text = log.text();
+    let text = log.complete_text(Duration::from_secs(5));
     assert!(!text.contains("restarting it"), "a stopped stage is not a dead one:\n{text}");
     assert_eq!(text.matches("interrupted: stopping").count(), 1, "only the final Ctrl-C stops the launcher:\n{text}");
 }
