@@ -479,36 +479,38 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     })
 }
 
-/// Starts the stages and watches them; `Ok(true)` when the stream ended, `Ok(false)` when
-/// interrupted.
 /// The lock of this prefix's pipeline, or an error naming who holds it.
 fn lock_the_prefix(names: &ipc::ServiceNames) -> Result<std::fs::File> {
     let namespace = ipc::UserNamespace::of_this_process().map_err(|e| anyhow::anyhow!(e))?;
     match namespace.lock_pipeline(names.prefix()).map_err(|e| anyhow::anyhow!(e))? {
         Some(lock) => Ok(lock),
-        None => bail!(
-            "a pipeline is already running under the services prefix `{}` (its launcher holds `{}`); stop it, or \
-             give this one its own prefix with `--services NAME` (or `services = \"NAME\"` in the pipeline file)",
-            names.prefix(),
-            namespace.pipeline_lock_path(names.prefix()).display()
-        ),
+        None => Err(already_running(
+            names,
+            &format!("its launcher holds `{}`", namespace.pipeline_lock_path(names.prefix()).display()),
+        )),
     }
+}
+
+/// Why a second pipeline under a running one's prefix is refused, and what to do instead.
+fn already_running(names: &ipc::ServiceNames, evidence: &str) -> anyhow::Error {
+    anyhow::anyhow!(
+        "a pipeline is already running under the services prefix `{}` ({evidence}); stop it, or give this one \
+         its own prefix with `--services NAME` (or `services = \"NAME\"` in the pipeline file)",
+        names.prefix()
+    )
 }
 
 /// Two pipelines under one prefix would mix their streams: the second is refused.
 fn refuse_a_running_pipeline(node: &ipc::IpcNode, names: &ipc::ServiceNames) -> Result<()> {
     let running: Vec<&str> = ipc::stage_health(node, names).into_iter().filter(|(_, up)| *up).map(|(s, _)| s).collect();
     if !running.is_empty() {
-        bail!(
-            "a pipeline is already running under the services prefix `{}` (its {} up); stop it, or give this one \
-             its own prefix with `--services NAME` (or `services = \"NAME\"` in the pipeline file)",
-            names.prefix(),
-            running.join(", ")
-        );
+        return Err(already_running(names, &format!("its {} up", running.join(", "))));
     }
     Ok(())
 }
 
+/// Starts the stages and watches them; `Ok(true)` when the stream ended, `Ok(false)` when
+/// interrupted.
 fn supervise(node: &ipc::IpcNode, stages: &mut [Stage], p: &Pipeline, progress: &Progress) -> Result<bool> {
     for stage in stages.iter_mut() {
         stage.start()?;
