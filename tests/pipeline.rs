@@ -141,6 +141,46 @@ fn replay_through_the_four_processes_matches_the_truth_and_the_offline_tracker_f
     assert!(log.text().contains("0 frames lost upstream"), "{}", log.text());
 }
 
+#[test]
+fn a_rig_with_a_camera_mounted_sideways_streams_its_portrait_views_and_replays_as_track_tracks() {
+    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 30;
+    // The front camera held sideways: 480x640 frames between two 640x480 ones.
+    let mut spec = SceneSpec::preset("signer-3cam").unwrap();
+    spec.frames = frames;
+    spec.cameras.mount_quarter_turns = vec![0, 1, 0];
+    let rec_dir = dir.path().join("sideways");
+    write_recording(&Renderer::new(&spec).unwrap(), &rec_dir, frames).unwrap();
+    let rec = Recording::open(&rec_dir).unwrap();
+    let sizes: Vec<(u32, u32)> = rec.rig().cameras.iter().map(|c| (c.width, c.height)).collect();
+    assert_eq!(sizes, [(640, 480), (480, 640), (640, 480)]);
+
+    let out = dir.path().join("trajectories.jsonl");
+    let prefix = unique_prefix("sideways");
+    let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
+    let log = Log::capture(&mut run);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
+    let text = log.complete_text(Duration::from_secs(5));
+    assert!(status.success(), "the run failed:\n{text}");
+    assert!(text.contains("640x480 / 480x640 / 640x480"), "ingest names each view's size:\n{text}");
+    assert!(!text.contains("skipping frame set"), "no frame set refused:\n{text}");
+
+    let mut offline = Vec::new();
+    track_recording(&rec_dir, &TrackOptions::default(), |r, _, _| {
+        offline.push(serde_json::to_string(r).unwrap());
+        Ok(())
+    })
+    .unwrap();
+    let file = std::fs::read_to_string(&out).unwrap();
+    assert_eq!(file.lines().count(), frames as usize - 1, "every frame but the first");
+    assert!(
+        file.lines().eq(offline.iter().map(String::as_str)),
+        "replay must give exactly what `handflow track` gives"
+    );
+}
+
 /// The sequences the publisher reported lost (`frames lost upstream: sequence a..=b`).
 fn reported_losses(log: &str) -> BTreeSet<u64> {
     let mut lost = BTreeSet::new();
@@ -442,8 +482,7 @@ fn a_malformed_frame_set_is_skipped_with_a_logged_error_and_the_stream_goes_on()
             capture_unix_ns: ipc::unix_now_ns(),
             rig_version: 1,
             view_count: 3,
-            width: 160,
-            height: 120,
+            view_sizes: FrameHeader::sizes_of([(160, 120); 3]).unwrap(),
             flags: 0,
             missing_views: 0,
             payload_len: rec.frame_set_len() as u64,

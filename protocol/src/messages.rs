@@ -19,13 +19,16 @@ use iceoryx2::prelude::ZeroCopySend;
 use thiserror::Error;
 
 /// Version of the wire format; a stage refuses messages of any other version.
-pub const PROTOCOL_VERSION: u32 = 3;
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// `flags` bit: the stream has ended; the message carries no data (an empty payload).
 pub const END_OF_STREAM: u32 = 1;
 
 /// Pixel format of frame payloads: 8-bit RGB, row-major, views one after another.
 pub const PIXEL_FORMAT_RGB8: u32 = 1;
+
+/// Most views a frame set carries (the size of [`FrameHeader::view_sizes`]).
+pub const MAX_FRAME_VIEWS: usize = 16;
 
 /// Objects of the trajectory messages, in the order of their `objects` arrays.
 pub const OBJECT_LABELS: [&str; 3] = ["head", "left_hand", "right_hand"];
@@ -122,7 +125,8 @@ impl RigHeader {
 }
 
 /// Header of a synchronised frame set; the payload holds every view's RGB8 pixels, in rig
-/// order, one after another.
+/// order, one after another, each view at its own size (a camera mounted sideways records
+/// portrait frames among the others' landscape ones).
 #[derive(Clone, Copy, Debug, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("HandflowFrameHeader")]
@@ -144,10 +148,9 @@ pub struct FrameHeader {
     pub rig_version: u32,
     /// Views in the payload.
     pub view_count: u32,
-    /// Width of every view, pixels.
-    pub width: u32,
-    /// Height of every view, pixels.
-    pub height: u32,
+    /// Width and height of each view in pixels, in rig order; the slots from `view_count` on
+    /// are zero.
+    pub view_sizes: [[u32; 2]; MAX_FRAME_VIEWS],
     /// [`END_OF_STREAM`] or 0.
     pub flags: u32,
     /// Bit `k` set: camera `k` delivered no view for this set (a live camera that stopped or
@@ -163,9 +166,30 @@ impl FrameHeader {
         k >= 32 || self.missing_views & (1 << k) == 0
     }
 
-    /// Bytes of one view.
-    pub fn view_len(&self) -> usize {
-        self.width as usize * self.height as usize * 3
+    /// [`FrameHeader::view_sizes`] of views of these sizes (width, height), in order; `None`
+    /// beyond [`MAX_FRAME_VIEWS`] views.
+    pub fn sizes_of(sizes: impl IntoIterator<Item = (u32, u32)>) -> Option<[[u32; 2]; MAX_FRAME_VIEWS]> {
+        let mut out = [[0; 2]; MAX_FRAME_VIEWS];
+        for (k, (w, h)) in sizes.into_iter().enumerate() {
+            *out.get_mut(k)? = [w, h];
+        }
+        Some(out)
+    }
+
+    /// Width and height of view `k` (zero beyond the set's views).
+    pub fn view_size(&self, k: usize) -> (u32, u32) {
+        self.view_sizes.get(k).map_or((0, 0), |&[w, h]| (w, h))
+    }
+
+    /// The views' sizes, in order.
+    pub fn sizes(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+        (0..(self.view_count as usize).min(MAX_FRAME_VIEWS)).map(|k| self.view_size(k))
+    }
+
+    /// Bytes of view `k`.
+    pub fn view_len(&self, k: usize) -> usize {
+        let (w, h) = self.view_size(k);
+        (w as usize).saturating_mul(h as usize).saturating_mul(3)
     }
 
     /// Whether this message ends the stream.
@@ -173,8 +197,9 @@ impl FrameHeader {
         self.flags & END_OF_STREAM != 0
     }
 
-    /// Checks the version, the pixel format and that `view_count x width x height x 3`
-    /// equals the header's and the actual payload length (both 0 at the end of a stream).
+    /// Checks the version, the pixel format, that the payload length is the header's and that
+    /// the views' sizes (`view_sizes`, 3 bytes a pixel) fill it (no payload at the end of a
+    /// stream).
     pub fn validate(&self, payload_len: usize) -> Result<(), MessageError> {
         const KIND: &str = "frame set";
         check_version(KIND, self.protocol_version)?;
@@ -188,17 +213,24 @@ impl FrameHeader {
         if self.pixel_format != PIXEL_FORMAT_RGB8 {
             return err("pixel_format", format!("is {}, only RGB8 ({PIXEL_FORMAT_RGB8}) is known", self.pixel_format));
         }
-        let expected = (self.view_count as u64)
-            .checked_mul(self.width as u64)
-            .and_then(|n| n.checked_mul(self.height as u64))
-            .and_then(|n| n.checked_mul(3));
-        if self.view_count == 0 || self.width == 0 || self.height == 0 || expected != Some(payload_len as u64) {
+        if self.view_count == 0 || self.view_count as usize > MAX_FRAME_VIEWS {
+            return err("view_count", format!("is {}, must be 1 to {MAX_FRAME_VIEWS}", self.view_count));
+        }
+        let used = self.view_count as usize;
+        if let Some(k) = (0..used).find(|&k| self.view_sizes[k].contains(&0)) {
+            let [w, h] = self.view_sizes[k];
+            return err("view_sizes", format!("gives view {k} a size of {w}x{h}"));
+        }
+        if self.view_sizes[used..].iter().any(|s| *s != [0, 0]) {
+            return err("view_sizes", format!("has sizes beyond the {used} views"));
+        }
+        let expected =
+            self.sizes().try_fold(0u64, |sum, (w, h)| (u64::from(w) * u64::from(h)).checked_mul(3)?.checked_add(sum));
+        if expected != Some(payload_len as u64) {
+            let sizes: Vec<String> = self.sizes().map(|(w, h)| format!("{w}x{h}")).collect();
             return err(
-                "view_count",
-                format!(
-                    "{} views of {}x{} RGB8 do not fill a payload of {payload_len} bytes",
-                    self.view_count, self.width, self.height
-                ),
+                "view_sizes",
+                format!("views of {} RGB8 do not fill a payload of {payload_len} bytes", sizes.join(", ")),
             );
         }
         if !self.timestamp_s.is_finite() {
@@ -219,8 +251,14 @@ impl FrameHeader {
 
     /// The views of a validated payload.
     pub fn views<'a>(&self, payload: &'a [u8]) -> Vec<&'a [u8]> {
-        let len = self.view_len().max(1);
-        payload.chunks_exact(len).take(self.view_count as usize).collect()
+        let mut rest = payload;
+        let mut views = Vec::with_capacity(self.view_count as usize);
+        for k in 0..(self.view_count as usize).min(MAX_FRAME_VIEWS) {
+            let Some((view, tail)) = rest.split_at_checked(self.view_len(k)) else { break };
+            views.push(view);
+            rest = tail;
+        }
+        views
     }
 }
 
@@ -633,8 +671,7 @@ mod tests {
             pixel_format: PIXEL_FORMAT_RGB8,
             sequence: 7,
             view_count: views,
-            width: w,
-            height: h,
+            view_sizes: FrameHeader::sizes_of((0..views).map(|_| (w, h))).unwrap(),
             payload_len: u64::from(views * w * h * 3),
             ..FrameHeader::default()
         }
@@ -658,11 +695,40 @@ mod tests {
         let mut lying = h;
         lying.view_count = 2;
         let e = lying.validate(72).unwrap_err();
-        assert!(matches!(e, MessageError::Field { field: "view_count", .. }), "{e}");
+        assert!(matches!(e, MessageError::Field { field: "view_sizes", .. }), "{e}");
         let mut huge = h;
-        huge.width = u32::MAX;
-        huge.height = u32::MAX;
+        huge.view_sizes[0] = [u32::MAX, u32::MAX];
         assert!(huge.validate(72).is_err());
+        let mut empty_view = h;
+        empty_view.view_sizes[2] = [4, 0];
+        let e = empty_view.validate(72).unwrap_err();
+        assert!(
+            matches!(e, MessageError::Field { field: "view_sizes", .. }) && e.to_string().contains("view 2"),
+            "{e}"
+        );
+        let mut too_many = h;
+        too_many.view_count = MAX_FRAME_VIEWS as u32 + 1;
+        assert!(matches!(too_many.validate(72).unwrap_err(), MessageError::Field { field: "view_count", .. }));
+        assert_eq!(FrameHeader::sizes_of((0..MAX_FRAME_VIEWS as u32 + 1).map(|_| (1, 1))), None);
+    }
+
+    #[test]
+    fn views_of_different_sizes_split_at_their_own_lengths() {
+        // A landscape view, one mounted sideways (portrait), a landscape one.
+        let sizes = [(4, 2), (2, 4), (4, 2)];
+        let h = FrameHeader {
+            view_count: 3,
+            view_sizes: FrameHeader::sizes_of(sizes).unwrap(),
+            payload_len: 72,
+            ..frame_header(3, 4, 2)
+        };
+        let payload: Vec<u8> = (0..72).collect();
+        h.validate(payload.len()).unwrap();
+        let views = h.views(&payload);
+        assert_eq!(views.iter().map(|v| (v.len(), v[0])).collect::<Vec<_>>(), [(24, 0), (24, 24), (24, 48)]);
+        assert_eq!((h.view_size(1), h.view_len(1)), ((2, 4), 24));
+        let longer = FrameHeader { view_sizes: FrameHeader::sizes_of([(4, 2), (2, 5), (4, 2)]).unwrap(), ..h };
+        assert!(matches!(longer.validate(72).unwrap_err(), MessageError::Field { field: "view_sizes", .. }));
     }
 
     #[test]

@@ -34,8 +34,7 @@ pub fn inject(prefix: &str, service: &str, mode: Mode, count: u32, seed: u64) ->
                     pixel_format: PIXEL_FORMAT_RGB8,
                     sequence: below(&mut draw, 1 << 20),
                     view_count: 1,
-                    width: 4,
-                    height: 4,
+                    view_sizes: FrameHeader::sizes_of([(4, 4)]).unwrap_or_default(),
                     payload_len: len as u64,
                     ..FrameHeader::default()
                 };

@@ -55,6 +55,8 @@ pub fn bench_ipc(samples: usize) -> Result<Vec<HopResult>> {
     let mut results = Vec::new();
     for views in HOP_VIEWS {
         let bytes = views as usize * VGA.0 as usize * VGA.1 as usize * 3;
+        let vga_views =
+            FrameHeader::sizes_of((0..views).map(|_| VGA)).context("more views than a frame set carries")?;
         let names = ServiceNames::new(format!("bench-ipc-{}-{views}", std::process::id()));
         let node = ipc::create_node("handflow-bench-ipc")?;
         let out = ipc::frames_output(&node, &names, Mode::Replay, bytes)?;
@@ -82,8 +84,7 @@ pub fn bench_ipc(samples: usize) -> Result<Vec<HopResult>> {
                 pixel_format: PIXEL_FORMAT_RGB8,
                 sequence: k,
                 view_count: if end { 0 } else { views },
-                width: VGA.0,
-                height: VGA.1,
+                view_sizes: if end { Default::default() } else { vga_views },
                 flags: if end { END_OF_STREAM } else { 0 },
                 payload_len: len as u64,
                 // Last thing before the send: the hop is what is measured, not the filling.

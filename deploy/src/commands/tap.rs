@@ -79,9 +79,14 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
                     (0..h.view_count as usize).filter(|&k| !h.has_view(k)).map(|k| k.to_string()).collect();
                 let missing =
                     if missing.is_empty() { String::new() } else { format!(", views missing: {}", missing.join(", ")) };
+                let sizes: Vec<String> = h.sizes().map(|(w, hgt)| format!("{w}x{hgt}")).collect();
+                let sizes = match sizes.first() {
+                    Some(first) if sizes.iter().all(|s| s == first) => first.clone(),
+                    _ => sizes.join(" / "),
+                };
                 line(format!(
-                    "frames seq {} frame {} t {:.3} s: {} x {}x{} RGB8, {} bytes, captured {age:.1} ms ago{missing}{check}",
-                    h.sequence, h.frame, h.timestamp_s, h.view_count, h.width, h.height, h.payload_len
+                    "frames seq {} frame {} t {:.3} s: {} x {sizes} RGB8, {} bytes, captured {age:.1} ms ago{missing}{check}",
+                    h.sequence, h.frame, h.timestamp_s, h.view_count, h.payload_len
                 ))
             })
         }

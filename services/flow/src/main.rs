@@ -55,7 +55,9 @@ fn run(args: Args) -> Result<()> {
     let config = stream_engine_config(variant, None, fps, &rig.cameras, reference);
     tracing::info!("{}", handflow_flow::stream::working_level_summary(&config, &rig.cameras, reference));
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
-    let (width, height, views) = (rig.cameras[0].width, rig.cameras[0].height, rig.cameras.len() as u32);
+    let views = rig.cameras.len() as u32;
+    // Each view at its camera's size (a camera mounted sideways sends portrait frames).
+    let rig_sizes: Vec<(u32, u32)> = rig.cameras.iter().map(|c| (c.width, c.height)).collect();
     let frames = ipc::frames_input(&node, &names, args.mode)?;
     let particles = ipc::particles_output(&node, &names, args.mode)?;
     tracing::info!(
@@ -81,15 +83,15 @@ fn run(args: Args) -> Result<()> {
             tracing::error!("skipping a malformed frame set: {e}");
             return Ok(Next::Continue);
         }
-        if !header.is_end_of_stream()
-            && (header.view_count != views || header.width != width || header.height != height)
-        {
+        if !header.is_end_of_stream() && (header.view_count != views || !header.sizes().eq(rig_sizes.iter().copied())) {
+            let sizes =
+                |s: &mut dyn Iterator<Item = (u32, u32)>| s.map(|(w, h)| format!("{w}x{h}")).collect::<Vec<_>>();
             tracing::error!(
-                "skipping frame set {}: {} views of {}x{}, the rig has {views} of {width}x{height}",
+                "skipping frame set {}: {} views of {}, the rig has {views} of {}",
                 header.sequence,
                 header.view_count,
-                header.width,
-                header.height
+                sizes(&mut header.sizes()).join(", "),
+                sizes(&mut rig_sizes.iter().copied()).join(", ")
             );
             return Ok(Next::Continue);
         }

@@ -16,8 +16,8 @@ use handflow_ingest::synthetic::{Renderer, SceneSpec};
 use handflow_ingest::{OpenOptions, Recording};
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
 use handflow_protocol::messages::{
-    camera_state, CameraStatusSet, FrameHeader, RigHeader, StreamProgress, END_OF_STREAM, MAX_STATUS_CAMERAS,
-    PIXEL_FORMAT_RGB8, PROTOCOL_VERSION,
+    camera_state, CameraStatusSet, FrameHeader, RigHeader, StreamProgress, END_OF_STREAM, MAX_FRAME_VIEWS,
+    MAX_STATUS_CAMERAS, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION,
 };
 use handflow_protocol::Rig;
 
@@ -173,17 +173,12 @@ fn run(args: Args) -> Result<()> {
         (None, None) => bail!("give a recording (--recording DIR) or a synthetic scene (--preset NAME)"),
     };
     let cameras = &source.rig().cameras;
-    let (width, height) = (cameras[0].width, cameras[0].height);
-    if let Some(other) = cameras.iter().find(|c| c.width != width || c.height != height) {
-        bail!(
-            "every camera of a streamed frame set must have the same size, but camera `{}` is {}x{} and `{}` is \
-             {width}x{height} (`handflow track` takes mixed sizes)",
-            other.name,
-            other.width,
-            other.height,
-            cameras[0].name
-        );
-    }
+    // Each view travels at its camera's size: a camera mounted sideways sends portrait frames.
+    let Some(view_sizes) = FrameHeader::sizes_of(cameras.iter().map(|c| (c.width, c.height))) else {
+        bail!("the rig has {} cameras; a streamed frame set carries at most {MAX_FRAME_VIEWS}", cameras.len());
+    };
+    let sizes = cameras.iter().map(|c| format!("{}x{}", c.width, c.height)).collect::<Vec<_>>();
+    let sizes = if sizes.iter().all(|s| *s == sizes[0]) { sizes[0].clone() } else { sizes.join(" / ") };
     let view_count = cameras.len() as u32;
     let frame_set_len = cameras.iter().map(|c| c.width as usize * c.height as usize * 3).sum::<usize>();
     let pace = args.pace.unwrap_or(match args.mode {
@@ -201,7 +196,7 @@ fn run(args: Args) -> Result<()> {
     tracing::info!("world up {:?} ({})", up.direction.as_slice(), up.source);
     let rig = publish_rig(&node, &names, &published_rig, source.frame_rate())?;
     let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
-    let shape = FrameShape { view_count, width, height, len: frame_set_len };
+    let shape = FrameShape { view_count, view_sizes, len: frame_set_len };
     // Replay loses nothing: the flow stage must listen before a frame goes out (at the start
     // and after a restart of flow). Meanwhile late joiners get the rig.
     let wait_for_flow = || wait_for_flow(&node, &names, &rig, &frames);
@@ -213,7 +208,7 @@ fn run(args: Args) -> Result<()> {
         (false, n) => n.unwrap_or(source.len()).min(source.len()),
     };
     tracing::info!(
-        "publishing {} frame sets of {view_count} x {width}x{height} on `{}` ({} mode, {} pace)",
+        "publishing {} frame sets of {view_count} x {sizes} on `{}` ({} mode, {} pace)",
         if total == u64::MAX { "endless".to_string() } else { total.to_string() },
         frames.name(),
         args.mode,
@@ -303,8 +298,7 @@ enum Sent {
 #[derive(Clone, Copy, Debug)]
 struct FrameShape {
     view_count: u32,
-    width: u32,
-    height: u32,
+    view_sizes: [[u32; 2]; MAX_FRAME_VIEWS],
     /// Bytes of the whole set.
     len: usize,
 }
@@ -337,8 +331,7 @@ fn send_frame_set(
         capture_unix_ns,
         rig_version: 1,
         view_count: shape.view_count,
-        width: shape.width,
-        height: shape.height,
+        view_sizes: shape.view_sizes,
         flags: 0,
         missing_views: 0,
         payload_len: shape.len as u64,
@@ -552,6 +545,9 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
     tracing::info!("world up {:?} ({})", up.direction.as_slice(), up.source);
     let rig_output = publish_rig(&node, &names, &rig, fps)?;
     let frame_set_len = cameras.len() * width as usize * height as usize * 3;
+    let Some(view_sizes) = FrameHeader::sizes_of(cameras.iter().map(|_| (width, height))) else {
+        bail!("{} live cameras; a streamed frame set carries at most {MAX_FRAME_VIEWS}", cameras.len());
+    };
     let frames = ipc::frames_output(&node, &names, args.mode, frame_set_len)?;
     let status_output = ipc::cameras_output(&node, &names)?;
     if cameras.len() > MAX_STATUS_CAMERAS {
@@ -675,8 +671,7 @@ fn run_live(args: &Args, specs: &[LiveCameraSpec]) -> Result<()> {
                 capture_unix_ns: (instant as i128 + unix_offset).max(0) as u64,
                 rig_version: 1,
                 view_count: cameras.len() as u32,
-                width,
-                height,
+                view_sizes,
                 flags: 0,
                 missing_views,
                 payload_len: frame_set_len as u64,

@@ -101,9 +101,9 @@ pub fn run(
                     .zip(&rig.cameras)
                     .enumerate()
                     .map(|(k, (view, cam))| {
-                        let shrunk = header
-                            .has_view(k)
-                            .then(|| thumbnails::shrink(view, header.width, header.height, cam.width, cam.height));
+                        let (width, height) = header.view_size(k);
+                        let shrunk =
+                            header.has_view(k).then(|| thumbnails::shrink(view, width, height, cam.width, cam.height));
                         shrunk.flatten().unwrap_or_else(|| (RgbImage::new(1, 1), 0.0))
                     })
                     .collect();
