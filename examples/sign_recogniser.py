@@ -23,7 +23,7 @@ import math
 import os
 import sys
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4  # handflow_protocol::messages::PROTOCOL_VERSION (the crate's test of this script fails when they differ)
 END_OF_STREAM = 1
 LOST = 2
 # A hand is at the face closer than this to the head's centre (metres), and leaves it
