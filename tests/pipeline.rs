@@ -82,6 +82,18 @@ fn launcher(args: &[&str]) -> Child {
 }
 
 /// Waits for `child` to exit, killing it after `timeout`.
+/// Replays `rec_dir` through the launcher into `out` under a fresh prefix named after `test`,
+/// asserts that the run succeeded and returns its whole log.
+fn replay_succeeds(rec_dir: &Path, out: &Path, test: &str) -> String {
+    let prefix = unique_prefix(test);
+    let mut run = launcher(&["--recording", str(rec_dir), "--out", str(out), "--services", &prefix]);
+    let log = Log::capture(&mut run);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
+    let text = log.complete_text(Duration::from_secs(5));
+    assert!(status.success(), "the run failed:\n{text}");
+    text
+}
+
 fn wait_with_timeout(child: &mut Child, timeout: Duration) -> std::process::ExitStatus {
     exit_within(child, timeout).unwrap_or_else(|| panic!("the pipeline did not end within {timeout:?}"))
 }
@@ -101,11 +113,7 @@ fn replay_through_the_four_processes_matches_the_truth_and_the_offline_tracker_f
     let frames = 60;
     let rec_dir = render_preset(dir.path(), "signer-3cam", frames, None);
     let out = dir.path().join("trajectories.jsonl");
-    let prefix = unique_prefix("replay");
-    let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
-    let log = Log::capture(&mut run);
-    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    assert!(status.success(), "the run failed:\n{}", log.complete_text(Duration::from_secs(5)));
+    let text = replay_succeeds(&rec_dir, &out, "replay");
 
     let streamed = read_tracks(&out).unwrap();
     let numbers: Vec<u64> = streamed.iter().map(|r| r.frame).collect();
@@ -138,7 +146,7 @@ fn replay_through_the_four_processes_matches_the_truth_and_the_offline_tracker_f
     for o in [&scores.head, &scores.left_hand, &scores.right_hand] {
         assert!(o.rmse_3d_m < 0.03, "{scores:?}");
     }
-    assert!(log.text().contains("0 frames lost upstream"), "{}", log.text());
+    assert!(text.contains("0 frames lost upstream"), "{text}");
 }
 
 #[test]
@@ -158,12 +166,7 @@ fn a_rig_with_a_camera_mounted_sideways_streams_its_portrait_views_and_replays_a
     assert_eq!(sizes, [(640, 480), (480, 640), (640, 480)]);
 
     let out = dir.path().join("trajectories.jsonl");
-    let prefix = unique_prefix("sideways");
-    let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
-    let log = Log::capture(&mut run);
-    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    let text = log.complete_text(Duration::from_secs(5));
-    assert!(status.success(), "the run failed:\n{text}");
+    let text = replay_succeeds(&rec_dir, &out, "sideways");
     assert!(text.contains("640x480 / 480x640 / 640x480"), "ingest names each view's size:\n{text}");
     assert!(!text.contains("skipping frame set"), "no frame set refused:\n{text}");
 
@@ -403,12 +406,7 @@ fn a_truncated_image_in_the_middle_is_skipped_by_track_and_by_run_and_every_othe
     }
 
     let out = dir.path().join("trajectories.jsonl");
-    let prefix = unique_prefix("truncated");
-    let mut run = launcher(&["--recording", str(&rec_dir), "--out", str(&out), "--services", &prefix]);
-    let log = Log::capture(&mut run);
-    let status = wait_with_timeout(&mut run, Duration::from_secs(300));
-    let text = log.complete_text(Duration::from_secs(5));
-    assert!(status.success(), "the run failed:\n{text}");
+    let text = replay_succeeds(&rec_dir, &out, "truncated");
     assert!(!text.contains("restarting it"), "no stage died:\n{text}");
     assert!(text.contains("frame set 4 skipped") && text.contains("000004.png"), "one error naming the frame:\n{text}");
     assert_eq!(reported_losses(&text), BTreeSet::from([4]), "{text}");

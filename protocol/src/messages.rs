@@ -176,6 +176,16 @@ impl FrameHeader {
         Some(out)
     }
 
+    /// Views' sizes for a message: `640x480` when all are that size, else each in turn
+    /// (`640x480 / 480x640 / 640x480`).
+    pub fn describe_sizes(sizes: impl IntoIterator<Item = (u32, u32)>) -> String {
+        let sizes: Vec<String> = sizes.into_iter().map(|(w, h)| format!("{w}x{h}")).collect();
+        match sizes.first() {
+            Some(first) if sizes.iter().all(|s| s == first) => first.clone(),
+            _ => sizes.join(" / "),
+        }
+    }
+
     /// Width and height of view `k` (zero beyond the set's views).
     pub fn view_size(&self, k: usize) -> (u32, u32) {
         self.view_sizes.get(k).map_or((0, 0), |&[w, h]| (w, h))
@@ -227,10 +237,12 @@ impl FrameHeader {
         let expected =
             self.sizes().try_fold(0u64, |sum, (w, h)| (u64::from(w) * u64::from(h)).checked_mul(3)?.checked_add(sum));
         if expected != Some(payload_len as u64) {
-            let sizes: Vec<String> = self.sizes().map(|(w, h)| format!("{w}x{h}")).collect();
             return err(
                 "view_sizes",
-                format!("views of {} RGB8 do not fill a payload of {payload_len} bytes", sizes.join(", ")),
+                format!(
+                    "views of {} RGB8 do not fill a payload of {payload_len} bytes",
+                    Self::describe_sizes(self.sizes())
+                ),
             );
         }
         if !self.timestamp_s.is_finite() {
@@ -727,6 +739,8 @@ mod tests {
         let views = h.views(&payload);
         assert_eq!(views.iter().map(|v| (v.len(), v[0])).collect::<Vec<_>>(), [(24, 0), (24, 24), (24, 48)]);
         assert_eq!((h.view_size(1), h.view_len(1)), ((2, 4), 24));
+        assert_eq!(FrameHeader::describe_sizes(h.sizes()), "4x2 / 2x4 / 4x2");
+        assert_eq!(FrameHeader::describe_sizes([(4, 2); 3]), "4x2");
         let longer = FrameHeader { view_sizes: FrameHeader::sizes_of([(4, 2), (2, 5), (4, 2)]).unwrap(), ..h };
         assert!(matches!(longer.validate(72).unwrap_err(), MessageError::Field { field: "view_sizes", .. }));
     }

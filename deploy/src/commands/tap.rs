@@ -6,7 +6,9 @@ use std::time::Duration;
 
 use anyhow::{bail, Result};
 use handflow_protocol::ipc::{self, Next, ServiceNames, SERVICE_SUFFIXES};
-use handflow_protocol::messages::{camera_state, track_state, TrajectoryObject, TrajectorySample, OBJECT_LABELS};
+use handflow_protocol::messages::{
+    camera_state, track_state, FrameHeader, TrajectoryObject, TrajectorySample, OBJECT_LABELS,
+};
 
 /// Prints up to `count` messages (all, until interrupted, when `None`) of service `suffix`
 /// (`rig`, `frames`, `particles`, `clusters` or `trajectories`) of the pipeline `prefix`.
@@ -79,11 +81,7 @@ pub fn tap(suffix: &str, prefix: &str, count: Option<u64>, out: &mut dyn Write) 
                     (0..h.view_count as usize).filter(|&k| !h.has_view(k)).map(|k| k.to_string()).collect();
                 let missing =
                     if missing.is_empty() { String::new() } else { format!(", views missing: {}", missing.join(", ")) };
-                let sizes: Vec<String> = h.sizes().map(|(w, hgt)| format!("{w}x{hgt}")).collect();
-                let sizes = match sizes.first() {
-                    Some(first) if sizes.iter().all(|s| s == first) => first.clone(),
-                    _ => sizes.join(" / "),
-                };
+                let sizes = FrameHeader::describe_sizes(h.sizes());
                 line(format!(
                     "frames seq {} frame {} t {:.3} s: {} x {sizes} RGB8, {} bytes, captured {age:.1} ms ago{missing}{check}",
                     h.sequence, h.frame, h.timestamp_s, h.view_count, h.payload_len

@@ -10,7 +10,7 @@ use clap::Parser;
 use handflow_flow::stream::{frames_in, scene_point_count, scene_points, stream_engine_config, FaceCue, FlowStream};
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_protocol::ipc::{self, Mode, Next, Output, ServiceNames};
-use handflow_protocol::messages::{ParticleHeader, ScenePoint, END_OF_STREAM, PROTOCOL_VERSION};
+use handflow_protocol::messages::{FrameHeader, ParticleHeader, ScenePoint, END_OF_STREAM, PROTOCOL_VERSION};
 
 #[derive(Parser, Debug)]
 #[command(name = "handflow-flow", about = "Scene flow by Scene Particles: frame sets in, particle sets out")]
@@ -83,15 +83,14 @@ fn run(args: Args) -> Result<()> {
             tracing::error!("skipping a malformed frame set: {e}");
             return Ok(Next::Continue);
         }
-        if !header.is_end_of_stream() && (header.view_count != views || !header.sizes().eq(rig_sizes.iter().copied())) {
-            let sizes =
-                |s: &mut dyn Iterator<Item = (u32, u32)>| s.map(|(w, h)| format!("{w}x{h}")).collect::<Vec<_>>();
+        // `sizes` has one item per view, so this compares the view count too.
+        if !header.is_end_of_stream() && !header.sizes().eq(rig_sizes.iter().copied()) {
             tracing::error!(
                 "skipping frame set {}: {} views of {}, the rig has {views} of {}",
                 header.sequence,
                 header.view_count,
-                sizes(&mut header.sizes()).join(", "),
-                sizes(&mut rig_sizes.iter().copied()).join(", ")
+                FrameHeader::describe_sizes(header.sizes()),
+                FrameHeader::describe_sizes(rig_sizes.iter().copied())
             );
             return Ok(Next::Continue);
         }

@@ -177,8 +177,7 @@ fn run(args: Args) -> Result<()> {
     let Some(view_sizes) = FrameHeader::sizes_of(cameras.iter().map(|c| (c.width, c.height))) else {
         bail!("the rig has {} cameras; a streamed frame set carries at most {MAX_FRAME_VIEWS}", cameras.len());
     };
-    let sizes = cameras.iter().map(|c| format!("{}x{}", c.width, c.height)).collect::<Vec<_>>();
-    let sizes = if sizes.iter().all(|s| *s == sizes[0]) { sizes[0].clone() } else { sizes.join(" / ") };
+    let sizes = FrameHeader::describe_sizes(cameras.iter().map(|c| (c.width, c.height)));
     let view_count = cameras.len() as u32;
     let frame_set_len = cameras.iter().map(|c| c.width as usize * c.height as usize * 3).sum::<usize>();
     let pace = args.pace.unwrap_or(match args.mode {
