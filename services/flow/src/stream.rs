@@ -28,6 +28,16 @@ use crate::{Coverage, EngineConfig, FlowError, SceneFlowEngine, Temporal, Varian
 pub const STREAM_DEPTH_RANGE_M: (f32, f32) = (0.5, 5.0);
 /// Fastest motion searched, metres per second (a fast sign: hands move up to about 3 m/s).
 pub const STREAM_SPEED_BOUND_M_S: f32 = 3.0;
+/// Largest acceleration of a hand, metres per second squared (the tracker's bound too): what
+/// the constant-velocity model can miss by over a frame interval `dt` is at most
+/// `STREAM_MAX_ACCELERATION_M_S2 * dt^2 / 2`.
+pub const STREAM_MAX_ACCELERATION_M_S2: f64 = 20.0;
+/// Length of a hand, metres: a carried hypothesis off by less than this still lands on the
+/// hand's skin.
+pub const HAND_LENGTH_M: f64 = 0.17;
+/// Extra coarsest-level loops on a warm frame (the previous posterior the prior) when the
+/// constant-velocity prediction can miss a hand by a hand's length or more.
+pub const MAX_WARM_COARSE_EXTRA_LOOPS: usize = 2;
 /// Adaptation rounds before the first estimate.
 pub const WARM_UP_ROUNDS: usize = 3;
 /// Frames between detecting faces on a frame and using the models adapted to them, at 30
@@ -62,6 +72,25 @@ pub fn frames_in(fps: f64, seconds: f64) -> u64 {
         1
     }
 }
+/// Extra coarsest-level loops on a warm frame of a stream at `fps`. They are the search for
+/// motion the carried posterior did not predict: each loop draws fresh hypotheses over the
+/// whole speed range and spreads the good ones between rays. How far the prediction can
+/// miss grows with the square of the frame interval ([`STREAM_MAX_ACCELERATION_M_S2`]):
+/// 1.1 cm at 30 fps, 4.4 cm at 15, 28 cm at 6. A miss well within a hand's length leaves
+/// the carried particles on the hand's skin, where the finest level's loops correct them;
+/// so the loops follow the miss in hand lengths: none from about 20 fps up, one at 10 to
+/// 15 fps, [`MAX_WARM_COARSE_EXTRA_LOOPS`] at 8 fps and below. Measured (BENCHMARKS.md):
+/// at 30 fps every preset keeps its figures without them and the engine is 1.3x faster;
+/// at 6 fps fewer than 2 lose hands on the shared real session and on `signer-6fps`.
+pub fn warm_coarse_extra_loops_for_rate(fps: f64) -> usize {
+    if !(fps.is_finite() && fps > 0.0) {
+        return MAX_WARM_COARSE_EXTRA_LOOPS;
+    }
+    let miss_m = 0.5 * STREAM_MAX_ACCELERATION_M_S2 / (fps * fps);
+    let loops = (MAX_WARM_COARSE_EXTRA_LOOPS as f64 * miss_m / HAND_LENGTH_M).round();
+    (loops as usize).min(MAX_WARM_COARSE_EXTRA_LOOPS)
+}
+
 /// Scene Particles per ray on streams: 6 instead of the engine's 10. Every preset stays on
 /// target with 6, as with 8, and so does every unseen scene that was (some figures a little
 /// lower, the hardest scene's higher); the engine is 1.15 to 1.28x faster than with 8: what
@@ -96,9 +125,10 @@ const JOIN_FIRST_ESTIMATE_FRAMES: u64 = 3;
 /// forwards/backwards likelihood, the search space of a signer at `fps`, the grid of the
 /// working level the rig's image size and expected palm size give ([`working_level`]:
 /// a hand needs a few hundred points, not every pixel) with rays two pixels apart where a
-/// palm stays [`MIN_PALM_RAYS`] wide ([`ray_subsampling`]), 2
+/// palm stays [`MIN_PALM_RAYS`] wide ([`ray_subsampling`]), at most 2
 /// extra coarse loops instead of 7 once the previous frame's posterior is the prior (it
-/// replaces most of the exploration a first frame needs), extra passes over the first
+/// replaces most of the exploration a first frame needs; fewer as the frame rate rises,
+/// [`warm_coarse_extra_loops_for_rate`]), extra passes over the first
 /// frame ([`STREAM_COLD_START_PASSES`]) and no weighted-median refinement (on the
 /// half-resolution grid its 9x9 window spans two palm widths' worth of edges and
 /// measurably moved points off the hands), and 3x3 support windows instead of 5x5 on every
@@ -120,7 +150,7 @@ pub fn stream_engine_config(
         ray_subsampling: ray_subsampling(palm_px, finest_level),
         // The working level and one coarser (as the half-resolution grid has always run).
         pyramid_levels: finest_level + 2,
-        warm_coarse_extra_loops: Some(2.min(defaults.coarse_extra_loops)),
+        warm_coarse_extra_loops: Some(warm_coarse_extra_loops_for_rate(fps).min(defaults.coarse_extra_loops)),
         cold_start_passes: STREAM_COLD_START_PASSES,
         refine_radius: 0,
         coarse_window_radius: STREAM_WINDOW_RADIUS,
@@ -1015,6 +1045,30 @@ mod tests {
         let expected = parallel[1].matrix[(0, 0)] * PALM_WIDTH_M / DEFAULT_SIGNER_DISTANCE_M;
         assert!((expected_palm_px(&parallel, 1) - expected).abs() < 1e-9);
         assert_eq!(rig_convergence_distance(&cams[..1], 0), None, "one camera");
+    }
+
+    #[test]
+    fn warm_coarse_loops_follow_how_far_the_prediction_can_miss_at_the_frame_rate() {
+        // 28 cm at 6 fps, 16 cm at 8: the search runs in full.
+        assert_eq!(warm_coarse_extra_loops_for_rate(6.0), 2);
+        assert_eq!(warm_coarse_extra_loops_for_rate(8.0), 2);
+        // 10 cm at 10 fps, 4.4 cm at 15: one loop.
+        assert_eq!(warm_coarse_extra_loops_for_rate(10.0), 1);
+        assert_eq!(warm_coarse_extra_loops_for_rate(15.0), 1);
+        // 1.1 cm at 30 fps, 0.3 cm at 60: the carried posterior stays on the hand.
+        assert_eq!(warm_coarse_extra_loops_for_rate(30.0), 0);
+        assert_eq!(warm_coarse_extra_loops_for_rate(60.0), 0);
+        // Never more at a lower rate, and an unknown rate searches in full.
+        let rates = [1.0, 3.0, 6.0, 7.5, 10.0, 12.0, 15.0, 20.0, 24.0, 30.0, 60.0, 120.0];
+        for pair in rates.windows(2) {
+            assert!(warm_coarse_extra_loops_for_rate(pair[0]) >= warm_coarse_extra_loops_for_rate(pair[1]));
+        }
+        for bad in [0.0, -5.0, f64::NAN, f64::INFINITY] {
+            assert_eq!(warm_coarse_extra_loops_for_rate(bad), MAX_WARM_COARSE_EXTRA_LOOPS);
+        }
+        let cams = arc(1.8, &[-35.0, 0.0, 35.0], 640, 480, 50.0);
+        assert_eq!(stream_engine_config(Variant::Handflow, None, 30.0, &cams, 1).warm_coarse_extra_loops, Some(0));
+        assert_eq!(stream_engine_config(Variant::Handflow, None, 6.0, &cams, 1).warm_coarse_extra_loops, Some(2));
     }
 
     #[test]
