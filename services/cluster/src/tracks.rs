@@ -46,8 +46,7 @@ pub enum NotStarted {
         clusters: usize,
     },
     /// The highest cluster (the head) has fewer than two others within reach
-    /// ([`TrackerConfig::reach_m`]) and in front of the signer's back
-    /// ([`TrackerConfig::behind_m`]).
+    /// ([`TrackerConfig::reach_m`]).
     HandsOutOfReach {
         /// Clusters within reach of the head.
         within_reach: usize,
@@ -55,8 +54,6 @@ pub enum NotStarted {
         nearest_beyond_m: Option<f64>,
         /// The reach, metres.
         reach_m: f64,
-        /// How far behind the head a hand may be, metres.
-        behind_m: f64,
     },
     /// Fewer than two clusters within reach of the head lie clear of it: the others are
     /// pieces of the head (a face split in two, a neck; see
@@ -91,12 +88,8 @@ impl std::fmt::Display for NotStarted {
             NotStarted::TooFewClusters { clusters } => {
                 write!(f, "{clusters} cluster(s) with enough weight, 3 needed (a head and two hands)")
             }
-            NotStarted::HandsOutOfReach { within_reach, nearest_beyond_m, reach_m, behind_m } => {
-                write!(
-                    f,
-                    "{within_reach} cluster(s) within {reach_m} m of the head cluster (the highest) and at most \
-                     {behind_m} m behind it, 2 needed"
-                )?;
+            NotStarted::HandsOutOfReach { within_reach, nearest_beyond_m, reach_m } => {
+                write!(f, "{within_reach} cluster(s) within {reach_m} m of the head cluster (the highest), 2 needed")?;
                 match nearest_beyond_m {
                     Some(d) => write!(f, "; the nearest other is {d:.2} m away"),
                     None => Ok(()),
@@ -164,12 +157,6 @@ pub struct TrackerConfig {
     /// shoulder). Tracks start only on hands within this reach, so skin-like clutter or a
     /// ghost surface behind the signer never becomes a hand.
     pub reach_m: f64,
-    /// Farthest a hand can be behind the head's centre, away from the cameras (horizontally,
-    /// the reference camera's forward direction), metres (default 0.3: the signer faces the
-    /// cameras, and a hand beyond the back is hidden by the body). A depth ghost on the ray
-    /// of a hand (measured: `signer-3cam` rendered at 15 fps, seed 0, a left hand started
-    /// 0.7 m behind the head, 0.93 m from it, within reach) never becomes a hand.
-    pub behind_m: f64,
 }
 
 impl Default for TrackerConfig {
@@ -187,7 +174,6 @@ impl Default for TrackerConfig {
             typical_mass_time_s: 0.32,
             face_anchor_m: 0.25,
             reach_m: 1.0,
-            behind_m: 0.3,
         }
     }
 }
@@ -393,16 +379,17 @@ impl Tracker {
             return Err(NotStarted::TooFewClusters { clusters: clusters.len() });
         }
         let distance = |k: usize| (clusters[k].position - clusters[head].position).norm();
-        let reachable = |k: usize| self.within_reach(clusters[head].position, clusters[k].position);
-        let mut hands: Vec<usize> = (0..clusters.len()).filter(|&k| k != head && reachable(k)).collect();
+        let mut hands: Vec<usize> =
+            (0..clusters.len()).filter(|&k| k != head && distance(k) <= self.config.reach_m).collect();
         if hands.len() < 2 {
-            let nearest_beyond_m =
-                (0..clusters.len()).filter(|&k| k != head && !reachable(k)).map(distance).min_by(f64::total_cmp);
+            let nearest_beyond_m = (0..clusters.len())
+                .filter(|&k| k != head && distance(k) > self.config.reach_m)
+                .map(distance)
+                .min_by(f64::total_cmp);
             return Err(NotStarted::HandsOutOfReach {
                 within_reach: hands.len(),
                 nearest_beyond_m,
                 reach_m: self.config.reach_m,
-                behind_m: self.config.behind_m,
             });
         }
         // A cluster by the head is a piece of it (a face EM split in two): a hand started
@@ -531,7 +518,7 @@ impl Tracker {
             let free = (0..clusters.len())
                 .filter(|i| !best.0.contains(&Some(*i)) && !taken.contains(i))
                 .filter(|&i| others.iter().all(|p| (clusters[i].position - p).norm() > self.config.split_distance_m))
-                .filter(|&i| k == 0 || self.within_reach(head, clusters[i].position))
+                .filter(|&i| k == 0 || (clusters[i].position - head).norm() <= self.config.reach_m)
                 .min_by(|&a, &b| cost(k, clusters[a]).total_cmp(&cost(k, clusters[b])));
             if let Some(i) = free {
                 best.0[k] = Some(i);
@@ -647,15 +634,6 @@ impl Tracker {
         let mut track = measured(c, confidence);
         track.velocity *= self.config.velocity_gain.clamp(0.0, 1.0);
         track
-    }
-
-    /// Whether a hand at `hand` is where a hand of the head at `head` can be: within
-    /// [`TrackerConfig::reach_m`] of it and at most [`TrackerConfig::behind_m`] behind it.
-    fn within_reach(&self, head: Vector3<f64>, hand: Vector3<f64>) -> bool {
-        // Away from the cameras, level: up x (forward x up) is forward made horizontal.
-        let away = self.up.cross(&self.signer_left);
-        let offset = hand - head;
-        offset.norm() <= self.config.reach_m && offset.dot(&away) <= self.config.behind_m
     }
 
     /// The cluster nearest `at` within [`TrackerConfig::face_anchor_m`].
@@ -872,41 +850,6 @@ mod tests {
     }
 
     #[test]
-    fn a_depth_ghost_behind_the_signer_never_starts_a_hand_whatever_the_worlds_axes() {
-        let at = |p: Vector3<f64>, mass: f64| Component { position: p, ..cluster(0.0, 0.0, 0.0, mass) };
-        // Y up, the cameras towards +z: away from them is -z. The ghost of the left hand,
-        // 0.7 m behind the head and 0.9 m from it (within reach), outweighs the real one.
-        let (up, left_dir, away) = (Vector3::y(), Vector3::x(), -Vector3::z());
-        // Z up, the signer's left -y: away from the cameras is +x.
-        let (up_z, left_z, away_z) = (Vector3::z(), -Vector3::y(), Vector3::x());
-        for (up, left_dir, away) in [(up, left_dir, away), (up_z, left_z, away_z)] {
-            let head = up * 1.6;
-            let left = at(head + left_dir * 0.25 - up * 0.5 - away * 0.2, 0.6);
-            let right = at(head - left_dir * 0.25 - up * 0.5 - away * 0.2, 1.0);
-            let ghost = at(head + left_dir * 0.35 - up * 0.45 + away * 0.7, 1.5);
-            assert!((ghost.position - head).norm() < TrackerConfig::default().reach_m);
-            let mut t = Tracker::new(TrackerConfig::default(), up, left_dir);
-            let tracks = t.update(0.0, Some(&fit(vec![at(head, 2.0), ghost, left, right])));
-            assert_eq!(tracks[1].position, left.position, "up {up:?}: the left hand, not its ghost");
-            assert_eq!(tracks[2].position, right.position);
-            // With only the ghost beside the right hand, the tracks wait and say why.
-            let mut t = Tracker::new(TrackerConfig::default(), up, left_dir);
-            t.update(0.0, Some(&fit(vec![at(head, 2.0), ghost, right])));
-            assert!(
-                matches!(t.not_started(), Some(NotStarted::HandsOutOfReach { within_reach: 1, .. })),
-                "{:?}",
-                t.not_started()
-            );
-            assert!(t.not_started().is_some_and(|w| w.to_string().contains("0.3 m behind")));
-            // A hand by the ear, 0.2 m behind the head's centre (reaching back), still counts.
-            let beside = at(head + left_dir * 0.3 - up * 0.2 + away * 0.2, 1.0);
-            let mut t = Tracker::new(TrackerConfig::default(), up, left_dir);
-            let tracks = t.update(0.0, Some(&fit(vec![at(head, 2.0), beside, right])));
-            assert_eq!(tracks[1].position, beside.position);
-        }
-    }
-
-    #[test]
     fn a_head_drifting_onto_clutter_is_brought_back_to_the_face() {
         let mut t = tracker();
         let head = cluster(0.0, 1.6, 0.0, 2.0);
@@ -1069,7 +1012,7 @@ mod tests {
             Some(&fit(vec![cluster(0.0, 1.6, 0.0, 1.0), cluster(0.2, 1.0, 0.0, 1.0), cluster(1.5, 1.4, 0.0, 1.0)])),
         );
         match t.not_started() {
-            Some(NotStarted::HandsOutOfReach { within_reach: 1, nearest_beyond_m: Some(d), reach_m, .. }) => {
+            Some(NotStarted::HandsOutOfReach { within_reach: 1, nearest_beyond_m: Some(d), reach_m }) => {
                 assert!((d - 2.29f64.sqrt()).abs() < 1e-12, "{d}");
                 assert_eq!(reach_m, 1.0);
             }
