@@ -8,7 +8,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use clap::Parser;
 use handflow_flow::stream::{
-    frames_in, scene_point_count, scene_points, stream_engine_config, FaceCue, FlowStream, MAX_WARM_COARSE_EXTRA_LOOPS,
+    frames_in, live_stream_engine_config, scene_point_count, scene_points, stream_engine_config, FaceCue, FlowStream,
 };
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_protocol::ipc::{self, Mode, Next, Output, ServiceNames};
@@ -54,13 +54,10 @@ fn run(args: Args) -> Result<()> {
     let Some((rig_header, rig)) = ipc::wait_for_rig(&node, &names)? else { return Ok(()) };
     let fps = rig_header.frame_rate_hz;
     let reference = rig.most_frontal_camera();
-    let mut config = stream_engine_config(variant, None, fps, &rig.cameras, reference);
-    if matches!(args.mode, Mode::Live) {
-        // Live, the newest frame set wins: on a loaded machine the engine's consecutive
-        // estimates can be several frame intervals apart, so the camera's rate says nothing
-        // of how far the prediction can miss. Keep the full search.
-        config.warm_coarse_extra_loops = Some(MAX_WARM_COARSE_EXTRA_LOOPS);
-    }
+    let config = match args.mode {
+        Mode::Replay => stream_engine_config(variant, None, fps, &rig.cameras, reference),
+        Mode::Live => live_stream_engine_config(variant, fps, &rig.cameras, reference),
+    };
     tracing::info!("{}", handflow_flow::stream::working_level_summary(&config, &rig.cameras, reference));
     let engine = SceneFlowEngine::new(config, rig.cameras.clone(), reference)?;
     let views = rig.cameras.len() as u32;

@@ -164,6 +164,16 @@ pub fn stream_engine_config(
     }
 }
 
+/// The engine configuration of a live stream: [`stream_engine_config`] keeping the full
+/// warm search ([`MAX_WARM_COARSE_EXTRA_LOOPS`]) whatever the rate. Live, the newest frame
+/// set wins: on a loaded machine consecutive estimates can be several frame intervals
+/// apart, so the camera's rate says nothing of how far the prediction can miss.
+pub fn live_stream_engine_config(variant: Variant, fps: f64, cameras: &[Camera], reference: usize) -> EngineConfig {
+    let config = stream_engine_config(variant, None, fps, cameras, reference);
+    let full = MAX_WARM_COARSE_EXTRA_LOOPS.min(config.coarse_extra_loops);
+    EngineConfig { warm_coarse_extra_loops: Some(full), ..config }
+}
+
 /// Width of an adult's palm, metres (the reference's palm centre sits in it).
 pub const PALM_WIDTH_M: f64 = 0.085;
 /// Least width of a palm in pixels of the level the engine estimates on. The working level
@@ -1069,6 +1079,8 @@ mod tests {
         let cams = arc(1.8, &[-35.0, 0.0, 35.0], 640, 480, 50.0);
         assert_eq!(stream_engine_config(Variant::Handflow, None, 30.0, &cams, 1).warm_coarse_extra_loops, Some(0));
         assert_eq!(stream_engine_config(Variant::Handflow, None, 6.0, &cams, 1).warm_coarse_extra_loops, Some(2));
+        // Live, estimates can be frames apart: the full search at any rate.
+        assert_eq!(live_stream_engine_config(Variant::Handflow, 30.0, &cams, 1).warm_coarse_extra_loops, Some(2));
     }
 
     #[test]
