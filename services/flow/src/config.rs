@@ -231,11 +231,6 @@ pub struct EngineConfig {
     /// reference view's image over the depth range. A hand below the reference view's image
     /// still gets points (default false).
     pub second_reference: bool,
-    /// With `second_reference`: the width, in the reference camera's full-resolution
-    /// pixels, of the band along its image's borders that counts as not seen by it (default
-    /// 0). A hand the border cuts gets few rays of its own there (its windows and skin
-    /// footprints are cut too), so the second reference covers the band as well.
-    pub reference_border_px: f32,
 }
 
 /// Upper bound of [`EngineConfig::particles_per_ray`]: per-ray work happens in stack arrays.
@@ -281,7 +276,6 @@ impl Default for EngineConfig {
             refine_colour_sigma: 0.3,
             fresh_fraction: 0.2,
             second_reference: false,
-            reference_border_px: 0.0,
             skin_weight: 1.0,
             skin_drop_worst_view: true,
             skin_threshold: 0.0,

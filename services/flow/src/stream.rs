@@ -160,8 +160,6 @@ pub fn stream_engine_config(
         velocity_prior_depth: STREAM_VELOCITY_PRIOR_DEPTH,
         speed_bound: STREAM_SPEED_BOUND_M_S / fps.max(1.0) as f32,
         second_reference: true,
-        // A hand the reference view's border cuts is the second reference's too.
-        reference_border_px: palm_px as f32,
         ..defaults
     }
 }

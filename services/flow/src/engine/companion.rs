@@ -24,7 +24,6 @@ impl SceneFlowEngine {
                 &self.projections[0][reference],
                 self.cameras[reference].width,
                 self.cameras[reference].height,
-                self.config.reference_border_px,
                 self.config.depth_range,
             );
             self.companion = Some(Box::new(companion));
@@ -88,14 +87,7 @@ pub(crate) fn second_reference_camera(cameras: &[Camera], reference: usize) -> O
 /// Full-resolution pixels of `camera` whose ray, over `depth_range`, runs mostly through
 /// what the other camera (`seeing`, an image `width` x `height`) sees: at least half of
 /// its depths, spaced evenly in inverse depth, project inside that image.
-fn seen_by(
-    camera: &Camera,
-    seeing: &LevelProjection,
-    width: u32,
-    height: u32,
-    border: f32,
-    depth_range: (f32, f32),
-) -> Vec<bool> {
+fn seen_by(camera: &Camera, seeing: &LevelProjection, width: u32, height: u32, depth_range: (f32, f32)) -> Vec<bool> {
     const DEPTHS: usize = 16;
     // Decided per ray of level 2 (a 4x4-pixel block): the mask follows the geometry, which
     // changes slowly across the image.
@@ -105,7 +97,7 @@ fn seen_by(
     let centre = camera.centre();
     let origin = [centre.x as f32, centre.y as f32, centre.z as f32];
     let (near, far) = (1.0 / depth_range.0, 1.0 / depth_range.1);
-    let inside = |p: [f32; 3]| in_image(seeing, width, height, border, p);
+    let inside = |p: [f32; 3]| in_image(seeing, width, height, p);
     let ray_seen: Vec<bool> = grid
         .dirs
         .iter()
@@ -161,7 +153,7 @@ mod tests {
         // view at every depth from 0.5 m on, its right edge never does.
         let second = camera("second", 0.3);
         let seeing = LevelProjection::new(&reference, 0);
-        let seen = seen_by(&second, &seeing, 32, 24, 0.0, (0.5, 5.0));
+        let seen = seen_by(&second, &seeing, 32, 24, (0.5, 5.0));
         assert_eq!(seen.len(), 32 * 24);
         assert!(seen[12 * 32], "left edge: seen by the reference");
         assert!(!seen[12 * 32 + 31], "right edge: beyond the reference's image");
@@ -175,34 +167,6 @@ mod tests {
         assert_eq!(companion.reference(), 1);
         assert!(engine.reference_sees([0.0, 0.0, 2.0]) && !engine.reference_sees([3.0, 0.0, 2.0]));
         assert!(!engine.reference_sees([0.0, 0.0, -2.0]), "behind the camera");
-    }
-
-    #[test]
-    fn a_band_along_the_reference_views_border_counts_as_unseen() {
-        let reference = camera("ref", 0.0);
-        let second = camera("second", 0.3);
-        let seeing = LevelProjection::new(&reference, 0);
-        let whole = seen_by(&second, &seeing, 32, 24, 0.0, (0.5, 5.0));
-        let banded = seen_by(&second, &seeing, 32, 24, 6.0, (0.5, 5.0));
-        // The band only takes rays away: what is seen beyond it is seen without it.
-        assert!(banded.iter().zip(&whole).all(|(&b, &w)| !b || w));
-        assert!(banded.iter().filter(|&&b| b).count() < whole.iter().filter(|&&w| w).count());
-        let cameras = vec![reference, second, camera("third", -0.1)];
-        let config = |border| EngineConfig {
-            coverage: Coverage::Skin,
-            second_reference: true,
-            reference_border_px: border,
-            ..EngineConfig::default()
-        };
-        let plain = SceneFlowEngine::new(config(0.0), cameras.clone(), 0).unwrap();
-        let banded = SceneFlowEngine::new(config(6.0), cameras, 0).unwrap();
-        // A point on the reference's optical axis is seen either way; one whose image lies
-        // within the band only without it.
-        assert!(plain.reference_sees([0.0, 0.0, 2.0]) && banded.reference_sees([0.0, 0.0, 2.0]));
-        let near_edge = (0..400)
-            .map(|k| [k as f32 * 0.005, 0.0, 2.0])
-            .find(|&p| plain.reference_sees(p) && !banded.reference_sees(p));
-        assert!(near_edge.is_some(), "some point within 6 px of the border");
     }
 
     #[test]

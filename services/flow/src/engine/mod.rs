@@ -322,11 +322,10 @@ impl SceneFlowEngine {
         Ok(())
     }
 
-    /// Whether world point `p` lies in front of the reference camera and inside its image,
-    /// [`EngineConfig::reference_border_px`] or more from its borders.
+    /// Whether world point `p` lies in front of the reference camera and inside its image.
     pub fn reference_sees(&self, p: [f32; 3]) -> bool {
         let cam = &self.cameras[self.reference];
-        in_image(&self.projections[0][self.reference], cam.width, cam.height, self.config.reference_border_px, p)
+        in_image(&self.projections[0][self.reference], cam.width, cam.height, p)
     }
 
     /// The clamped log10 skin ratio of the colour camera `camera` saw at full-resolution
@@ -1583,11 +1582,11 @@ fn ray_grid(camera: &Camera, level: usize, with_rays: bool) -> RayGrid {
 
 /// Whether world point `p` lies in front of the camera of `projection` and inside its
 /// `width` x `height` image (pixel centres at integers).
-/// Whether `p` projects inside the image, `border` pixels or more from its edges.
-fn in_image(projection: &LevelProjection, width: u32, height: u32, border: f32, p: [f32; 3]) -> bool {
-    let (low, high_u, high_v) = (border - 0.5, width as f32 - 0.5 - border, height as f32 - 0.5 - border);
+fn in_image(projection: &LevelProjection, width: u32, height: u32, p: [f32; 3]) -> bool {
     projection.to_camera(p)[2] > 0.0
-        && projection.project(p).is_some_and(|[u, v]| u >= low && v >= low && u < high_u && v < high_v)
+        && projection
+            .project(p)
+            .is_some_and(|[u, v]| u >= -0.5 && v >= -0.5 && u < width as f32 - 0.5 && v < height as f32 - 0.5)
 }
 
 #[inline(always)]
