@@ -117,8 +117,8 @@ fn replay_through_the_four_processes_matches_the_truth_and_the_offline_tracker_f
 
     let streamed = read_tracks(&out).unwrap();
     let numbers: Vec<u64> = streamed.iter().map(|r| r.frame).collect();
-    // Every frame but the first (forwards/backwards needs t-1), once each, in order.
-    assert_eq!(numbers, (1..u64::from(frames)).collect::<Vec<_>>(), "frames missing or repeated");
+    // Every frame, the first included (estimated from itself and the next), once each, in order.
+    assert_eq!(numbers, (0..u64::from(frames)).collect::<Vec<_>>(), "frames missing or repeated");
 
     let mut offline = Vec::new();
     track_recording(&rec_dir, &TrackOptions::default(), |r, _, _| {
@@ -139,7 +139,7 @@ fn replay_through_the_four_processes_matches_the_truth_and_the_offline_tracker_f
 
     let rec = Recording::open(&rec_dir).unwrap();
     let scores = evaluate_tracks(&rec, &streamed).unwrap();
-    assert_eq!(scores.frames, frames as usize - 1);
+    assert_eq!(scores.frames, frames as usize);
     assert_eq!(scores.head.agreement, 1.0, "{scores:?}");
     assert!(scores.left_hand.agreement >= 0.95 && scores.right_hand.agreement >= 0.95, "{scores:?}");
     assert_eq!(scores.identity_switches, 0);
@@ -177,7 +177,7 @@ fn a_rig_with_a_camera_mounted_sideways_streams_its_portrait_views_and_replays_a
     })
     .unwrap();
     let file = std::fs::read_to_string(&out).unwrap();
-    assert_eq!(file.lines().count(), frames as usize - 1, "every frame but the first");
+    assert_eq!(file.lines().count(), frames as usize, "every frame");
     assert!(
         file.lines().eq(offline.iter().map(String::as_str)),
         "replay must give exactly what `handflow track` gives"
@@ -234,7 +234,7 @@ fn kill_mid_stream(binary: &str, rec_dir: &Path, frames: u32) {
     let records = read_tracks(&out).unwrap();
     let present: BTreeSet<u64> = records.iter().map(|r| r.frame).collect();
     assert_eq!(present.len(), records.len(), "no frame twice");
-    let missing: BTreeSet<u64> = (1..u64::from(frames)).filter(|f| !present.contains(f)).collect();
+    let missing: BTreeSet<u64> = (0..u64::from(frames)).filter(|f| !present.contains(f)).collect();
     let reported = reported_losses(&text);
     eprintln!(
         "{binary} killed after {} trajectory samples: restarted after {:?}, ready after {recovered:?}, \
@@ -276,7 +276,7 @@ fn killing_ingest_mid_stream_resumes_where_the_stream_was() {
     assert_eq!(present.len(), records.len(), "no frame twice: the stream did not start again at frame 0");
     let order: Vec<u64> = records.iter().map(|r| r.frame).collect();
     assert!(order.windows(2).all(|w| w[0] < w[1]), "frames in order: {order:?}");
-    let missing: BTreeSet<u64> = (1..u64::from(frames)).filter(|f| !present.contains(f)).collect();
+    let missing: BTreeSet<u64> = (0..u64::from(frames)).filter(|f| !present.contains(f)).collect();
     assert_eq!(reported_losses(&text), missing, "every frame is published or reported lost");
     assert!(missing.len() <= 3, "at most the frames in flight are lost: {missing:?}");
     assert!(present.contains(&(u64::from(frames) - 1)), "the stream goes on to its last frame");
@@ -320,7 +320,7 @@ fn a_restarted_replay_ingest_waits_for_a_busy_flow_stage_instead_of_skipping_fra
     let records = read_tracks(&out).unwrap();
     let present: BTreeSet<u64> = records.iter().map(|r| r.frame).collect();
     assert_eq!(present.len(), records.len(), "no frame twice");
-    let missing: BTreeSet<u64> = (1..u64::from(frames)).filter(|f| !present.contains(f)).collect();
+    let missing: BTreeSet<u64> = (0..u64::from(frames)).filter(|f| !present.contains(f)).collect();
     assert_eq!(reported_losses(&text), missing, "every frame is published or reported lost");
     // Lost: what the dead ingest's shared memory held (flow's buffer of 4 and the set it was
     // reading), not what the new one sent while flow was busy (dozens before the fix).
@@ -391,7 +391,7 @@ fn a_truncated_image_in_the_middle_is_skipped_by_track_and_by_run_and_every_othe
     let broken = rec_dir.join(&rig.cameras[1].name).join("000004.png");
     let bytes = std::fs::read(&broken).unwrap();
     std::fs::write(&broken, &bytes[..bytes.len() / 2]).unwrap();
-    let expected: Vec<u64> = (1..u64::from(frames)).filter(|&f| f != 4).collect();
+    let expected: Vec<u64> = (0..u64::from(frames)).filter(|&f| f != 4).collect();
 
     let mut offline = Vec::new();
     let summary = track_recording(&rec_dir, &TrackOptions::default(), |r, _, _| {
@@ -540,7 +540,7 @@ fn a_malformed_frame_set_is_skipped_with_a_logged_error_and_the_stream_goes_on()
     sender.join().unwrap();
     let _ = flow.kill();
     let _ = flow.wait();
-    assert_eq!(estimated, (1..u64::from(frames)).collect::<Vec<_>>());
+    assert_eq!(estimated, (0..u64::from(frames)).collect::<Vec<_>>());
     let text = log.text();
     assert!(text.contains("skipping a malformed frame set") && text.contains("payload_len"), "{text}");
 }
@@ -586,7 +586,7 @@ fn a_slow_subscriber_never_stalls_a_live_pipeline() {
     assert!(published >= 10, "the pipeline kept publishing: {published} samples\n{}", log.text());
     // Whatever live mode dropped is counted, and every frame is accounted for.
     let dropped = reported_losses(&log.text()).len();
-    assert_eq!(published + dropped, frames as usize - 1, "published + dropped = frames - 1\n{}", log.text());
+    assert_eq!(published + dropped, frames as usize, "published + dropped = frames\n{}", log.text());
     assert!(received * 2 < published, "the slow subscriber lost samples instead of slowing the publisher");
 }
 
@@ -678,7 +678,7 @@ fn killing_the_publisher_keeps_its_file_and_its_count_of_losses() {
     let present: BTreeSet<u64> = records.iter().map(|r| r.frame).collect();
     assert_eq!(present.len(), records.len(), "no frame twice");
     assert!(present.contains(&1) && present.contains(&40), "the records before the kill stay in the file");
-    let missing: BTreeSet<u64> = (1..u64::from(frames)).filter(|f| !present.contains(f)).collect();
+    let missing: BTreeSet<u64> = (0..u64::from(frames)).filter(|f| !present.contains(f)).collect();
     assert_eq!(reported_losses(&text), missing, "every frame is in the file or reported lost, once");
     assert!(missing.len() <= 3, "at most the frames in flight are lost: {missing:?}");
     let last = records.last().unwrap();

@@ -118,8 +118,8 @@ struct OverlayArgs {
 
 #[derive(Args, Debug)]
 struct InspectArgs {
-    /// Frame number to inspect (as in the recording's frame table; not the first frame
-    /// read, which has no estimate). The tracker runs from the first frame read up to it.
+    /// Frame number to inspect (as in the recording's frame table). The tracker runs from
+    /// the first frame read up to it.
     #[arg(long)]
     frame: u64,
     /// Output folder: one folder of pictures per camera and `montage.png`.

@@ -426,7 +426,7 @@ fn bench_flow_on_a_recording_reports_frames_per_second() {
     let r = handflow(&["bench", "flow", "--recording", arg(&out), "--json", "--no-baseline"]);
     assert!(r.status.success(), "{}", describe(&r));
     let v: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
-    assert_eq!(v["frames"].as_u64(), Some(4), "frames 1-3 with t+1, the last one flushed: {v}");
+    assert_eq!(v["frames"].as_u64(), Some(5), "frame 0 from t+1 alone, 1-3 with both, the last one flushed: {v}");
     assert!(v["frames_per_second"].as_f64().unwrap_or(0.0) > 0.0, "{v}");
     let occupied = v["occupied_share"].as_f64().unwrap_or(-1.0);
     assert!(occupied > 0.005 && occupied < 0.2, "head and hands are a few percent of the view: {v}");
@@ -454,11 +454,11 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
     assert!(r.status.success(), "{}", describe(&r));
     let text = std::fs::read_to_string(&tracks).unwrap();
     let lines: Vec<&str> = text.lines().collect();
-    assert_eq!(lines.len(), 7, "every frame but the first (no t-1)");
+    assert_eq!(lines.len(), 8, "every frame, the first included");
     for (i, line) in lines.iter().enumerate() {
         let v: serde_json::Value = serde_json::from_str(line).unwrap();
-        assert_eq!(v["frame"].as_u64(), Some(i as u64 + 1));
-        assert!((v["t"].as_f64().unwrap() - (i + 1) as f64 / 30.0).abs() < 1e-5, "timestamps of frames.csv");
+        assert_eq!(v["frame"].as_u64(), Some(i as u64));
+        assert!((v["t"].as_f64().unwrap() - i as f64 / 30.0).abs() < 1e-5, "timestamps of frames.csv");
         let objects = v["objects"].as_object().unwrap();
         assert_eq!(objects.keys().collect::<Vec<_>>(), ["head", "left_hand", "right_hand"]);
         for (name, o) in objects {
@@ -473,7 +473,7 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
     let r = handflow(&["eval", "tracks", "--recording", arg(&rec), "--tracks", arg(&tracks), "--json"]);
     assert!(r.status.success(), "{}", describe(&r));
     let v: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
-    assert_eq!(v["frames"].as_u64(), Some(7));
+    assert_eq!(v["frames"].as_u64(), Some(8));
     for name in ["head", "left_hand", "right_hand"] {
         for key in ["agreement", "rms_palm_x", "rms_palm_y", "rmse_3d_m"] {
             assert!(v[name][key].as_f64().is_some_and(f64::is_finite), "{name}.{key}: {v}");
@@ -505,7 +505,7 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
         };
         let fields = String::from_utf8_lossy(&probe.stdout).trim().to_string();
         let (w, h) = size.split_once('x').unwrap();
-        assert_eq!(fields, format!("vp8,{w},{h},7"), "{}: seven frames of {size}", video.display());
+        assert_eq!(fields, format!("vp8,{w},{h},8"), "{}: eight frames of {size}", video.display());
     }
 
     let csv = tmp.path().join("tracks.csv");
@@ -513,7 +513,7 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
     assert!(r.status.success(), "{}", describe(&r));
     let text = std::fs::read_to_string(&csv).unwrap();
     assert!(text.starts_with("frame,t,head_x,head_y,head_z,head_vx"));
-    assert_eq!(text.lines().count(), 1 + 3);
+    assert_eq!(text.lines().count(), 1 + 4, "a header and the four frames");
 
     let bad = tmp.path().join("bad.jsonl");
     std::fs::write(&bad, format!("{}\n{{\"frame\": 2}}\n", lines[0])).unwrap();

@@ -79,6 +79,6 @@ fn a_lossless_video_recording_imports_to_its_frames_and_tracks_as_its_images() {
         assert!(output.status.success(), "{}", describe(&output));
     }
     let (a, b) = (std::fs::read_to_string(&from_images).unwrap(), std::fs::read_to_string(&from_videos).unwrap());
-    assert_eq!(a.lines().count(), 11, "every frame but the first");
+    assert_eq!(a.lines().count(), 12, "every frame");
     assert!(a == b, "track on the videos and on their images write the same file");
 }

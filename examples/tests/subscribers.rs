@@ -67,8 +67,8 @@ fn rust_and_python_recognisers_get_every_sample_and_see_the_hands_cross() {
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stdout));
 
     let published = std::fs::read_to_string(&out).unwrap().lines().count();
-    assert_eq!(published, frames as usize - 1);
-    let expected_summary = format!("summary: {published} samples, frames 1..={}, 0 dropped upstream", frames - 1);
+    assert_eq!(published, frames as usize);
+    let expected_summary = format!("summary: {published} samples, frames 0..={}, 0 dropped upstream", frames - 1);
     let rust_lines = rust_process.finish(Duration::from_secs(60));
     let summary = rust_lines.last().unwrap();
     assert!(summary.starts_with(&expected_summary), "{summary}");

@@ -96,7 +96,7 @@ fn remote_subscribers_receive_every_sample_of_a_replay_in_order() {
         py
     });
     // Every sample and the end of the stream.
-    let tap = remote_tap(&endpoint, Some(frames as usize));
+    let tap = remote_tap(&endpoint, Some(frames as usize + 1));
 
     let run = Command::new(binaries_dir().join("handflow"))
         .args(["run", "--no-viewer", pipeline.to_str().unwrap()])
@@ -106,10 +106,10 @@ fn remote_subscribers_receive_every_sample_of_a_replay_in_order() {
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
 
     let published = file_frames(&out);
-    assert_eq!(published, (1..frames as u64).collect::<Vec<_>>());
+    assert_eq!(published, (0..frames as u64).collect::<Vec<_>>());
     let rust_lines = rust.finish(Duration::from_secs(30));
     let summary = rust_lines.last().unwrap();
-    let expected = format!("summary: {} samples, frames 1..={}, 0 dropped upstream", published.len(), frames - 1);
+    let expected = format!("summary: {} samples, frames 0..={}, 0 dropped upstream", published.len(), frames - 1);
     assert!(summary.starts_with(&expected), "{summary}");
     assert!(rust_lines.iter().any(|l| l.ends_with("hands crossed")), "{rust_lines:?}");
     if let Some(py) = python {
@@ -165,7 +165,7 @@ fn killing_the_bridge_leaves_the_local_outputs_whole_and_the_remote_side_resumes
     assert!(status.success(), "{log}");
     assert!(log.contains("stage bridge ended") && log.contains("restarting it"), "{log}");
     // The pipeline never waited for the bridge: every frame, none lost, in the local file.
-    assert_eq!(file_frames(&out), (1..frames as u64).collect::<Vec<_>>());
+    assert_eq!(file_frames(&out), (0..frames as u64).collect::<Vec<_>>());
     std::thread::sleep(Duration::from_millis(500));
     let mut tap = tap;
     let _ = tap.child.kill();
@@ -176,7 +176,7 @@ fn killing_the_bridge_leaves_the_local_outputs_whole_and_the_remote_side_resumes
     eprintln!(
         "bridge killed after frame {last_before}: remote samples resumed {resumed:?} later; {} of {} frames reached the remote side",
         remote.len(),
-        frames - 1
+        frames
     );
     assert!(resumed < Duration::from_secs(5), "remote samples resumed only {resumed:?} after the kill");
 }

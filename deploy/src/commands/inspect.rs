@@ -88,12 +88,12 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
         let (first, last) = (rec.frames().first().map_or(0, |f| f.frame), rec.frames().last().map_or(0, |f| f.frame));
         format!("frame {frame} is not in recording `{}` (frames {first} to {last} read)", dir.display())
     })?;
-    anyhow::ensure!(
-        index > 0,
-        "frame {frame} is the first frame read: it has no estimate (the engine needs the frame before); choose a \
-         later one"
-    );
     let (mut flow, mut stage, reference) = tracker_stages::<usize>(options, &rig, up.direction, fps)?;
+    anyhow::ensure!(
+        index > 0 || flow.engine().config().estimate_first_frame,
+        "frame {frame} is the first frame read: it has no estimate with `estimate_first_frame=false` (the engine \
+         needs the frame before); choose a later one"
+    );
     let mut tail: VecDeque<TrajectoryRecord> = VecDeque::with_capacity(TAIL);
     let mut points: Vec<ScenePoint> = Vec::new();
     let mut inspected: Option<Vec<u8>> = None;

@@ -97,6 +97,11 @@ pub struct EngineConfig {
     /// posterior; these passes give the first frame some of it, so a trajectory does not
     /// start from a half-converged depth.
     pub cold_start_passes: usize,
+    /// With forwards/backwards, also estimate a stream's first frame, from it and the next
+    /// alone (it has no t-1), as soon as the next arrives (default false: the published
+    /// method's first estimate is of the second frame). Streams set it: a trajectory then
+    /// starts at the first frame, and the second frame builds on the first's posterior.
+    pub estimate_first_frame: bool,
     /// Rays of each pyramid level on that level's own pixel grid (true), or full-resolution
     /// rays on every level, coarse levels only blurring the images (false). The paper does
     /// not say which; coarse-to-fine hand-over copies a coarse ray's particles to the four
@@ -248,6 +253,7 @@ impl Default for EngineConfig {
             coarse_extra_loops: 7,
             warm_coarse_extra_loops: None,
             cold_start_passes: 0,
+            estimate_first_frame: false,
             per_level_rays: true,
             finest_level: 0,
             ray_subsampling: 0,

@@ -117,8 +117,8 @@ pub const STREAM_COLD_START_PASSES: usize = 8;
 /// restarted stage most of its second (0.7 s on four 1280x720 views), while the carried
 /// posterior settles the depth over the next frames.
 pub const JOIN_COLD_START_PASSES: usize = 1;
-/// Frames a stream joined part-way pushes before its first estimate is out
-/// (forwards/backwards: t-1, t and t+1).
+/// Frames a stream joined part-way pushes before its cold estimates are out (its first
+/// frame's from t and t+1, then its second's from t-1, t and t+1).
 const JOIN_FIRST_ESTIMATE_FRAMES: u64 = 3;
 
 /// The engine configuration for trajectories: the variant's defaults, skin coverage, the
@@ -152,6 +152,7 @@ pub fn stream_engine_config(
         pyramid_levels: finest_level + 2,
         warm_coarse_extra_loops: Some(warm_coarse_extra_loops_for_rate(fps).min(defaults.coarse_extra_loops)),
         cold_start_passes: STREAM_COLD_START_PASSES,
+        estimate_first_frame: true,
         refine_radius: 0,
         coarse_window_radius: STREAM_WINDOW_RADIUS,
         coverage: Coverage::Skin,
@@ -850,7 +851,8 @@ impl<M> FlowStream<M> {
     }
 
     /// Hands the engine's last estimate out with its frame's metadata; frames before it
-    /// never get one (the first frame of a forwards/backwards stream).
+    /// never get one (the first frame of a forwards/backwards stream whose engine does not
+    /// estimate it).
     fn hand_out<E: From<StreamError>>(
         &mut self,
         on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,

@@ -302,6 +302,33 @@ fn forwards_backwards_is_one_frame_late_and_flush_estimates_the_last_frame() {
 }
 
 #[test]
+fn a_first_frame_is_estimated_forwards_from_its_successor_when_asked() {
+    let cameras = vec![camera("left", 0.0), camera("right", 0.4)];
+    let config = EngineConfig {
+        temporal: Temporal::ForwardsBackwards,
+        estimate_first_frame: true,
+        seed: 1,
+        depth_range: (2.0, 10.0),
+        speed_bound: 0.2,
+        ..EngineConfig::for_variant(Variant::Handflow)
+    };
+    let mut engine = SceneFlowEngine::new(config, cameras.clone(), 0).expect("engine");
+    assert!(!push(&mut engine, &render_views(&cameras, 0.0)));
+    assert!(push(&mut engine, &render_views(&cameras, 1.0)), "frame 0 is estimated once frame 1 is in");
+    assert_eq!(engine.stats().frame, 0);
+    assert!(!engine.stats().used_temporal_prior);
+    // The motion comes from t+1 alone, and is as right.
+    assert!(central_median_vx_error(engine.field()) < 0.01);
+    assert!(push(&mut engine, &render_views(&cameras, 2.0)));
+    assert_eq!(engine.stats().frame, 1, "then one frame late, as without it");
+    assert!(!engine.stats().used_temporal_prior, "the second frame starts afresh on all three frames");
+    assert!(central_median_vx_error(engine.field()) < 0.01);
+    assert!(push(&mut engine, &render_views(&cameras, 3.0)));
+    assert_eq!(engine.stats().frame, 2);
+    assert!(engine.stats().used_temporal_prior);
+}
+
+#[test]
 fn bad_frames_are_refused_with_the_camera_named() {
     let (mut engine, cameras) = engine(Variant::Handflow, Temporal::TwoFrame, handflow_flow::Coverage::Dense, 0);
     let views = render_views(&cameras, 0.0);

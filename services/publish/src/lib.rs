@@ -83,9 +83,9 @@ pub fn trajectory_sample(set: &ClusterSet, dropped_frames: u64, published_unix_n
     }
 }
 
-/// Frames lost upstream, from the ingest sequence numbers that reach the last stage. The
-/// first frame of a stream (sequence 0) never has an estimate (forwards/backwards needs its
-/// predecessor), so counting expects sequence 1 first.
+/// Frames lost upstream, from the ingest sequence numbers that reach the last stage. Every
+/// frame of a stream has an estimate, its first (sequence 0) included, so counting expects
+/// sequence 0 first.
 #[derive(Clone, Debug)]
 pub struct SequenceGaps {
     next: Option<u64>,
@@ -94,7 +94,7 @@ pub struct SequenceGaps {
 
 impl Default for SequenceGaps {
     fn default() -> Self {
-        Self { next: Some(1), lost: 0 }
+        Self { next: Some(0), lost: 0 }
     }
 }
 
@@ -108,7 +108,7 @@ impl SequenceGaps {
 
     /// The next sequence expected.
     pub fn next(&self) -> u64 {
-        self.next.unwrap_or(1)
+        self.next.unwrap_or(0)
     }
 
     /// Notes sequence `sequence` arriving; returns the sequences lost just before it.
@@ -177,6 +177,7 @@ mod tests {
     #[test]
     fn sequence_gaps_report_exactly_the_missing_sequences() {
         let mut gaps = SequenceGaps::default();
+        assert_eq!(gaps.arrive(0), 0..0);
         assert_eq!(gaps.arrive(1), 1..1);
         assert_eq!(gaps.arrive(2), 2..2);
         assert_eq!(gaps.arrive(6), 3..6);
@@ -185,7 +186,7 @@ mod tests {
         assert_eq!(gaps.arrive(7), 7..7);
         assert_eq!(gaps.lost(), 3);
         let mut late_start = SequenceGaps::default();
-        assert_eq!(late_start.arrive(19), 1..19);
+        assert_eq!(late_start.arrive(19), 0..19);
     }
 
     #[test]
