@@ -5,8 +5,8 @@
 # frame sets per second of every run and the ratio handflow / MediaPipe of the medians.
 # handflow's seconds are its process's wall clock, start-up included; MediaPipe's are the
 # script's own, from opening the videos to the last triangulated frame set (Python's start-up
-# and imports, about a second, left out). handflow's frame sets are the records it wrote (its
-# first frame set only starts the flow and gives none), MediaPipe's the frame sets it read.
+# and imports, about a second, left out). handflow's frame sets are the records it wrote (one
+# per frame set read), MediaPipe's the frame sets it read.
 # Usage: [HANDFLOW_BIN=...] [PYTHON=python3.12] scripts/mediapipe_baseline.sh [RECORDING_DIR] [--frames N]
 set -euo pipefail
 cd "$(dirname "$0")/.."
