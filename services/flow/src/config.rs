@@ -100,7 +100,7 @@ pub struct EngineConfig {
     /// With forwards/backwards, also estimate a stream's first frame, from it and the next
     /// alone (it has no t-1), as soon as the next arrives (default false: the published
     /// method's first estimate is of the second frame). Streams set it: a trajectory then
-    /// starts at the first frame, and the second frame builds on the first's posterior.
+    /// starts at the first frame. The second frame still starts afresh on all three.
     pub estimate_first_frame: bool,
     /// Rays of each pyramid level on that level's own pixel grid (true), or full-resolution
     /// rays on every level, coarse levels only blurring the images (false). The paper does

@@ -561,8 +561,8 @@ impl SceneFlowEngine {
         // A stream's first frame is seen with its successor alone: a third less evidence of
         // each depth, and the velocity pinned from one side only. It gets twice the extra
         // passes (measured on `signer-3cam`: the head 3.9 cm off with the usual 8, 1.4 cm
-        // with 16), and, a weaker prior than a cold start on all three frames, it is not
-        // carried on: the next frame starts cold as well.
+        // with 16), and it is not carried on: the next frame starts cold as well. Carried,
+        // it cost the shared real session's hands 2 to 6 points within 5 cm (BENCHMARKS.md).
         let first_frame = window.centre == 0;
         if !carried {
             let passes = if first_frame { self.next_cold_start_passes } else { self.next_cold_start_passes.take() };
