@@ -90,7 +90,7 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
     })?;
     let (mut flow, mut stage, reference) = tracker_stages::<usize>(options, &rig, up.direction, fps)?;
     anyhow::ensure!(
-        index > 0 || flow.engine().config().estimate_first_frame,
+        index > 0 || flow.engine().config().estimates_first_frame(),
         "frame {frame} is the first frame read: it has no estimate with `estimate_first_frame=false` (the engine \
          needs the frame before); choose a later one"
     );

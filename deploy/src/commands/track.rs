@@ -128,7 +128,7 @@ pub fn track_recording(
     let mut skipped: u64 = 0;
     // Every frame gets an estimate (the last through the flush; the first unless the
     // engine is told not to estimate it), less the frame sets that cannot be read.
-    let total = frames - usize::from(!flow.engine().config().estimate_first_frame);
+    let total = frames - usize::from(!flow.engine().config().estimates_first_frame());
     // Three threads beside the engine's pool, as the services run in processes of their
     // own: frames are decoded one ahead, faces are detected inside the flow stream, and
     // each estimate is clustered while the engine works on the next frame (EM would

@@ -315,6 +315,12 @@ impl EngineConfig {
         }
     }
 
+    /// Whether a stream's first frame gets an estimate: only forwards/backwards with
+    /// [`EngineConfig::estimate_first_frame`] (the two-frame likelihood needs t-1 too).
+    pub fn estimates_first_frame(&self) -> bool {
+        self.temporal == Temporal::ForwardsBackwards && self.estimate_first_frame
+    }
+
     /// Checks every field; the message names the field at fault.
     pub fn validate(&self) -> Result<(), String> {
         let positive = |name: &str, v: f32| {

@@ -503,7 +503,7 @@ impl SceneFlowEngine {
             Temporal::TwoFrame if self.ring_len >= 2 => Some(self.window(2, 1)),
             Temporal::ForwardsBackwards if self.ring_len >= 3 => Some(self.window(3, 1)),
             // The ring holds two frames only once per stream: its first two.
-            Temporal::ForwardsBackwards if self.ring_len == 2 && self.config.estimate_first_frame => {
+            Temporal::ForwardsBackwards if self.ring_len == 2 && self.config.estimates_first_frame() => {
                 Some(self.window(2, 0))
             }
             _ => None,
