@@ -144,12 +144,18 @@ pub fn stream_engine_config(
     let defaults = EngineConfig::for_variant(variant);
     let palm_px = expected_palm_px(cameras, reference);
     let finest_level = cameras.get(reference).map_or(1, |_| working_level(palm_px));
+    let ray_subsampling = ray_subsampling(palm_px, finest_level);
     EngineConfig {
         particles_per_ray: particles_per_ray.unwrap_or(STREAM_PARTICLES_PER_RAY),
         finest_level,
-        ray_subsampling: ray_subsampling(palm_px, finest_level),
-        // The working level and one coarser (as the half-resolution grid has always run).
-        pyramid_levels: finest_level + 2,
+        ray_subsampling,
+        // The working level and the levels up to one coarser than the finest ray grid: the
+        // coarsest level's rays must lie farther apart than the finest's, or its loops only
+        // blur the images (its search for depth and motion gains no reach). Measured on the
+        // shared real session (rays two pixels apart): a fourth level instead of a third
+        // kept the likelihood evaluations (150,000 per frame) and gave the left hand 5.3
+        // points within 5 cm, the head 2.0 (six seeds, BENCHMARKS.md).
+        pyramid_levels: finest_level + ray_subsampling + 2,
         warm_coarse_extra_loops: Some(warm_coarse_extra_loops_for_rate(fps).min(defaults.coarse_extra_loops)),
         cold_start_passes: STREAM_COLD_START_PASSES,
         estimate_first_frame: true,
@@ -1090,15 +1096,39 @@ mod tests {
         let cams = arc(1.8, &[-35.0, 0.0, 35.0], 1920, 1080, 50.0);
         let config = stream_engine_config(Variant::Handflow, None, 30.0, &cams, 1);
         // Palms 97 px wide: 24 px on level 2, 12 rays two pixels apart.
-        assert_eq!((config.finest_level, config.pyramid_levels, config.ray_subsampling), (2, 4, 1));
+        assert_eq!((config.finest_level, config.pyramid_levels, config.ray_subsampling), (2, 5, 1));
         config.validate().expect("valid");
         // 1280x720 webcams at 1.5 m: palms 28 px on level 1, rays two pixels apart.
         let config =
             stream_engine_config(Variant::Handflow, None, 6.0, &arc(1.5, &[-30.0, 0.0, 30.0], 1280, 720, 70.0), 1);
-        assert_eq!((config.finest_level, config.pyramid_levels, config.ray_subsampling), (1, 3, 1));
+        assert_eq!((config.finest_level, config.pyramid_levels, config.ray_subsampling), (1, 4, 1));
         config.validate().expect("valid");
         let config = stream_engine_config(Variant::Handflow, None, 30.0, &arc(1.8, &[0.0, 30.0], 320, 240, 50.0), 0);
         assert_eq!((config.finest_level, config.pyramid_levels), (0, 2));
         config.validate().expect("valid");
+    }
+
+    #[test]
+    fn the_coarsest_level_has_sparser_rays_than_the_finest_at_every_resolution() {
+        for width in (320..=3840).step_by(160) {
+            for fov in [40.0, 60.0, 90.0] {
+                let cams = arc(1.2, &[-30.0, 0.0, 30.0], width, width * 9 / 16, fov);
+                let config = stream_engine_config(Variant::Handflow, None, 30.0, &cams, 1);
+                config.validate().expect("valid");
+                let finest_rays = config.finest_level + config.ray_subsampling;
+                assert_eq!(
+                    config.pyramid_levels,
+                    finest_rays + 2,
+                    "{width} px wide, {fov} degrees: the top level one ray grid coarser than the finest"
+                );
+                // A palm still spans two 3x3 windows on the coarsest level's grid.
+                let top = config.pyramid_levels - 1;
+                let palm_top = expected_palm_px(&cams, 1) / f64::from(1u32 << top);
+                assert!(
+                    palm_top >= 0.5 * MIN_PALM_RAYS || config.ray_subsampling == 0,
+                    "{width} px, {fov} deg: {palm_top}"
+                );
+            }
+        }
     }
 }
