@@ -345,6 +345,17 @@ impl Tracker {
         };
         self.assigned = [None; 3];
         self.not_started = None;
+        // No frame at all for longer than a track may coast (a live stage that fell behind,
+        // a stream that stalled): the constant-velocity predictions over that gap say
+        // nothing of where each hand is now, and following them swaps hands. The tracks
+        // are lost and start again from the labelling rules.
+        if t - self.time > self.config.lost_after_s {
+            if let Some(tracks) = self.tracks.as_mut() {
+                for k in tracks.iter_mut() {
+                    k.state = State::Lost;
+                }
+            }
+        }
         let tracks = match self.predictions(t) {
             Some(predicted) => self.follow(t - self.time, predicted, &clusters, anchor),
             None => match self.start(&clusters, anchor) {
@@ -771,6 +782,31 @@ mod tests {
         let (p, _) = t.predictions(2.0 * dt).expect("tracks")[1];
         assert!((p.x - (left.position.x + left.velocity.x * dt)).abs() < 1e-12);
         assert!(p.x > left.position.x);
+    }
+
+    #[test]
+    fn after_a_gap_longer_than_a_track_may_coast_the_hands_are_labelled_afresh() {
+        let hands = |left: (f64, f64), right: (f64, f64)| {
+            fit(vec![
+                cluster(0.0, 1.6, 0.0, 2.0),
+                cluster(left.0, 1.1, left.1, 1.0),
+                cluster(right.0, 1.1, right.1, 1.0),
+            ])
+        };
+        let dt = 1.0 / 15.0;
+        let mut t = tracker();
+        // The hands sweep towards each other at 1 m/s.
+        t.update(0.0, Some(&hands((0.25, -1.0), (-0.25, 1.0))));
+        t.update(dt, Some(&hands((0.25 - dt, -1.0), (-0.25 + dt, 1.0))));
+        // No frame for a second; the hands are back at their sides. Followed over the gap,
+        // each hand's prediction lies beyond the other hand, which it would take.
+        let tracks = t.update(dt + 1.0, Some(&hands((0.25, 0.0), (-0.25, 0.0))));
+        assert!(tracks.iter().all(|k| k.state == State::Tracked), "{tracks:?}");
+        assert!((tracks[1].position.x - 0.25).abs() < 1e-9, "left hand on the signer's left: {tracks:?}");
+        assert!((tracks[2].position.x + 0.25).abs() < 1e-9, "{tracks:?}");
+        // A short gap is followed as before.
+        let tracks = t.update(dt + 1.2, Some(&hands((0.2, 0.0), (-0.25, 0.0))));
+        assert!((tracks[1].position.x - 0.2).abs() < 0.03, "{tracks:?}");
     }
 
     #[test]
