@@ -144,7 +144,8 @@ fn run(args: Args) -> Result<()> {
             );
             return Ok(Next::Continue);
         }
-        let pushed = stream.push_partial(meta, sample.payload(), header.missing_views, &mut publish);
+        let pushed =
+            stream.push_partial_at(meta, sample.payload(), header.missing_views, header.sequence, &mut publish);
         drop(sample);
         pushed.with_context(|| format!("frame set {}", header.sequence))?;
         Ok(Next::Continue)

@@ -519,6 +519,9 @@ pub enum StreamError {
     },
 }
 
+/// A frame set held for the warm-up: its metadata, bytes, missing views and grid index.
+type HeldFrameSet<M> = (M, Vec<u8>, u32, Option<u64>);
+
 /// The scene-flow engine over one stream of frame sets, each tagged with `M` (the caller's
 /// frame metadata), handing every estimate out with the metadata of its frame.
 pub struct FlowStream<M> {
@@ -526,7 +529,7 @@ pub struct FlowStream<M> {
     faces: FaceWorker,
     frame_set_len: usize,
     /// Frames held until the warm-up rounds have their frames.
-    held: Option<Vec<(M, Vec<u8>, u32)>>,
+    held: Option<Vec<HeldFrameSet<M>>>,
     /// Frames pushed into the engine.
     pushed: u64,
     /// Frames at which the next adapted models are applied.
@@ -690,6 +693,32 @@ impl<M> FlowStream<M> {
         meta: M,
         frame_set: &[u8],
         missing: u32,
+        on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        self.push_indexed(meta, frame_set, missing, None, on_estimate)
+    }
+
+    /// [`FlowStream::push_partial`] for the frame set at `index` on the stream's frame grid
+    /// (the capture sequence): sets lost before it (a live stage that fell behind) are
+    /// spanned by the engine's constant-velocity model instead of being taken for one frame
+    /// interval ([`SceneFlowEngine::push_frame_indexed`]).
+    pub fn push_partial_at<E: From<StreamError>>(
+        &mut self,
+        meta: M,
+        frame_set: &[u8],
+        missing: u32,
+        index: u64,
+        on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        self.push_indexed(meta, frame_set, missing, Some(index), on_estimate)
+    }
+
+    fn push_indexed<E: From<StreamError>>(
+        &mut self,
+        meta: M,
+        frame_set: &[u8],
+        missing: u32,
+        index: Option<u64>,
         mut on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         if frame_set.len() != self.frame_set_len {
@@ -697,13 +726,13 @@ impl<M> FlowStream<M> {
         }
         if let Some(held) = self.held.as_mut() {
             // Copies only the first frames of a stream, once.
-            held.push((meta, frame_set.to_vec(), missing));
+            held.push((meta, frame_set.to_vec(), missing, index));
             if held.len() as u64 >= self.warm_up_frames {
                 self.release_held(&mut on_estimate)?;
             }
             return Ok(());
         }
-        self.push_now(meta, frame_set, missing, &mut on_estimate)
+        self.push_now(meta, frame_set, missing, index, &mut on_estimate)
     }
 
     /// Ends the stream: estimates what is left (the last frame with the two-frame
@@ -821,8 +850,8 @@ impl<M> FlowStream<M> {
             self.apply_models(&models, round)?;
         }
         let skip = self.backlog_limit.map_or(0, |keep| held.len().saturating_sub(keep));
-        for (meta, frame_set, missing) in held.into_iter().skip(skip) {
-            self.push_now(meta, &frame_set, missing, on_estimate)?;
+        for (meta, frame_set, missing, index) in held.into_iter().skip(skip) {
+            self.push_now(meta, &frame_set, missing, index, on_estimate)?;
         }
         Ok(())
     }
@@ -832,6 +861,7 @@ impl<M> FlowStream<M> {
         meta: M,
         frame_set: &[u8],
         missing: u32,
+        index: Option<u64>,
         on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
     ) -> Result<(), E> {
         let k = self.pushed;
@@ -850,7 +880,11 @@ impl<M> FlowStream<M> {
         let views = split_views(self.engine.cameras(), frame_set);
         self.waiting.push_back((k, meta));
         self.pushed += 1;
-        if self.engine.push_frame_partial(&views, missing).map_err(StreamError::from)?.is_some() {
+        let pushed = match index {
+            Some(index) => self.engine.push_frame_indexed(&views, missing, index),
+            None => self.engine.push_frame_partial(&views, missing),
+        };
+        if pushed.map_err(StreamError::from)?.is_some() {
             self.hand_out(on_estimate)?;
         }
         Ok(())

@@ -132,6 +132,14 @@ pub struct SceneFlowEngine {
     ring_len: usize,
     ring_newest: usize,
     frames_pushed: u64,
+    /// Per ring slot, its frame's place on the stream's frame grid: consecutive frames
+    /// differ by 1, and a frame set lost on the way (a live stage that fell behind) leaves
+    /// a gap that the constant-velocity model spans.
+    slot_index: [u64; 3],
+    /// Grid index of the last frame pushed.
+    last_index: Option<u64>,
+    /// Frame intervals the carried posterior moves by (see `slot_index`).
+    carry_step: f32,
     particles: Vec<Particle>,
     particles_back: Vec<Particle>,
     counts: Vec<u8>,
@@ -270,6 +278,9 @@ impl SceneFlowEngine {
             ring_len: 0,
             ring_newest: 2,
             frames_pushed: 0,
+            slot_index: [0; 3],
+            last_index: None,
+            carry_step: 1.0,
             particles: vec![Particle::EMPTY; rays * n],
             particles_back: vec![Particle::EMPTY; rays * n],
             counts: vec![0; rays],
@@ -408,6 +419,7 @@ impl SceneFlowEngine {
     /// Forgets every frame and the posterior (a new, unrelated stream follows).
     pub fn reset(&mut self) {
         self.ring_len = 0;
+        self.last_index = None;
         self.posterior_of = None;
         self.posterior_slot = None;
         self.next_cold_start_passes = None;
@@ -429,6 +441,21 @@ impl SceneFlowEngine {
     /// of the skin term, for as long as this frame is in the window. The reference camera
     /// must be present.
     pub fn push_frame_partial(&mut self, views: &[&[u8]], missing: u32) -> Result<Option<&DenseField>, FlowError> {
+        let next = self.last_index.map_or(0, |i| i + 1);
+        self.push_frame_indexed(views, missing, next)
+    }
+
+    /// [`SceneFlowEngine::push_frame_partial`] for the frame at `index` on the stream's frame
+    /// grid (its capture sequence): frames skipped since the last one pushed (lost, or
+    /// dropped by a stage that fell behind) widen the window's intervals, and the
+    /// constant-velocity model, its velocities still per frame interval, spans them. An
+    /// index not after the last one counts as the next.
+    pub fn push_frame_indexed(
+        &mut self,
+        views: &[&[u8]],
+        missing: u32,
+        index: u64,
+    ) -> Result<Option<&DenseField>, FlowError> {
         let started = Instant::now();
         let frame = self.frames_pushed;
         let has = |k: usize| k >= 32 || missing & (1 << k) == 0;
@@ -482,12 +509,17 @@ impl SceneFlowEngine {
                 },
             );
         }
+        let index = self.last_index.map_or(index, |last| index.max(last + 1));
+        self.slot_index[slot] = index;
+        self.last_index = Some(index);
         self.ring_newest = slot;
         self.ring_len = (self.ring_len + 1).min(3);
         self.frames_pushed += 1;
         let estimated = self.estimate_pending(started);
         if self.companion.is_some() {
             self.run_companion(started, |c| {
+                c.slot_index[slot] = index;
+                c.last_index = Some(index);
                 c.ring_newest = slot;
                 c.ring_len = (c.ring_len + 1).min(3);
                 c.frames_pushed += 1;
@@ -555,7 +587,18 @@ impl SceneFlowEngine {
     fn estimate(&mut self, window: Window, started: Instant) {
         let frame = self.frames_pushed - (window.len - window.centre) as u64;
         let _span = tracing::debug_span!("scene_flow", frame, variant = self.config.variant.name()).entered();
-        let carried = self.posterior_of == Some(frame.wrapping_sub(1));
+        // Frame intervals since the frame of the posterior held (1 unless frames were lost).
+        let gap = match (self.posterior_of == Some(frame.wrapping_sub(1)), self.posterior_slot) {
+            (true, Some(slot)) => Some(self.slot_index[window.centre_slot()].saturating_sub(self.slot_index[slot])),
+            _ => None,
+        };
+        let carried = gap.is_some();
+        // Over a longer gap the posterior is the prior held where it was: a cold start would
+        // cost a live stage that already fell behind several frames' time.
+        self.carry_step = match gap {
+            Some(g) if g <= MAX_SPANNED_GAP_FRAMES => g as f32,
+            _ => 0.0,
+        };
         let prior = if carried { Prior::Carried } else { Prior::None };
         let mut evaluations = self.estimate_pass(window, frame, prior, 0);
         // A stream's first frame is seen with its successor alone: a third less evidence of
@@ -606,7 +649,7 @@ impl SceneFlowEngine {
             self.update_active(window.centre_slot());
         }
         if use_prior {
-            let step = if prior == Prior::Carried { 1.0 } else { 0.0 };
+            let step = if prior == Prior::Carried { self.carry_step } else { 0.0 };
             self.carry_posterior_forward(frame_key, step);
             self.prior_counts.copy_from_slice(&self.counts);
         }
@@ -916,7 +959,10 @@ impl SceneFlowEngine {
         let mut images = [placeholder; MAX_IMAGES];
         let mut n_images = 0;
         for (k, &slot) in window.slots.iter().enumerate().take(window.len) {
-            let offset = k as f32 - window.centre as f32;
+            let offset = (self.slot_index[slot] as f64 - self.slot_index[window.centre_slot()] as f64) as f32;
+            if offset.abs() > MAX_SPANNED_GAP_FRAMES as f32 {
+                continue;
+            }
             for (q, pyr) in self.ring[slot].iter().enumerate() {
                 if !self.present[slot].get(q).copied().unwrap_or(true) {
                     continue;
@@ -1246,6 +1292,13 @@ crate::matching::isa::vectorised_fn! {
         }
     }
 }
+
+/// Most frame intervals the constant-velocity model spans, between the frames of a window
+/// and between a posterior and the next frame estimated from it: a frame or two lost on
+/// the way, while over longer gaps a hand's path bends too far for it (its miss grows
+/// with the square of the gap). A farther neighbour is left out of the window, a farther
+/// posterior is carried without moving its particles.
+pub const MAX_SPANNED_GAP_FRAMES: u64 = 3;
 
 /// Candidates a ray weighs per iteration: its particles, four neighbours' best, exploration.
 const MAX_CANDIDATES: usize = MAX_PARTICLES_PER_RAY + 8;
