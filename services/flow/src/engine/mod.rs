@@ -138,8 +138,6 @@ pub struct SceneFlowEngine {
     slot_index: [u64; 3],
     /// Grid index of the last frame pushed.
     last_index: Option<u64>,
-    /// Frame intervals the carried posterior moves by (see `slot_index`).
-    carry_step: f32,
     particles: Vec<Particle>,
     particles_back: Vec<Particle>,
     counts: Vec<u8>,
@@ -183,12 +181,13 @@ pub struct SceneFlowEngine {
 }
 
 /// Where a pass over a frame takes its particles from.
-#[derive(Clone, Copy, PartialEq, Eq)]
+#[derive(Clone, Copy, PartialEq)]
 enum Prior {
     /// The broad initial prior: no earlier estimate to build on.
     None,
-    /// The previous frame's posterior, moved by its velocities.
-    Carried,
+    /// The previous frame's posterior, moved by its velocities times `step` frame
+    /// intervals (0 over a gap too long for constant velocity: held where it was).
+    Carried { step: f32 },
     /// The previous pass's posterior for this same frame, unmoved.
     Held,
 }
@@ -280,7 +279,6 @@ impl SceneFlowEngine {
             frames_pushed: 0,
             slot_index: [0; 3],
             last_index: None,
-            carry_step: 1.0,
             particles: vec![Particle::EMPTY; rays * n],
             particles_back: vec![Particle::EMPTY; rays * n],
             counts: vec![0; rays],
@@ -595,11 +593,11 @@ impl SceneFlowEngine {
         let carried = gap.is_some();
         // Over a longer gap the posterior is the prior held where it was: a cold start would
         // cost a live stage that already fell behind several frames' time.
-        self.carry_step = match gap {
-            Some(g) if g <= MAX_SPANNED_GAP_FRAMES => g as f32,
-            _ => 0.0,
+        let prior = match gap {
+            Some(g) if g <= MAX_SPANNED_GAP_FRAMES => Prior::Carried { step: g as f32 },
+            Some(_) => Prior::Carried { step: 0.0 },
+            None => Prior::None,
         };
-        let prior = if carried { Prior::Carried } else { Prior::None };
         let mut evaluations = self.estimate_pass(window, frame, prior, 0);
         // A stream's first frame is seen with its successor alone: a third less evidence of
         // each depth, and the velocity pinned from one side only. It gets twice the extra
@@ -649,7 +647,7 @@ impl SceneFlowEngine {
             self.update_active(window.centre_slot());
         }
         if use_prior {
-            let step = if prior == Prior::Carried { self.carry_step } else { 0.0 };
+            let step = if let Prior::Carried { step } = prior { step } else { 0.0 };
             self.carry_posterior_forward(frame_key, step);
             self.prior_counts.copy_from_slice(&self.counts);
         }
