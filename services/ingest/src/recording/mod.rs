@@ -707,18 +707,18 @@ fn open_images(dir: &Path, rig: Rig) -> Result<(Rig, Vec<FrameEntry>, ImageSets)
             });
         }
     }
-    // Sizes from the headers only: cheap, and a wrong size is refused before replay.
+    // Sizes from the headers only: cheap, and a wrong size is refused before replay. A
+    // header that cannot be read is a broken frame, not a broken recording: reading that
+    // frame set reports it and the stream goes on without it.
     let checks: Vec<(usize, usize)> =
         (0..images.len()).flat_map(|f| (0..rig.cameras.len()).map(move |c| (f, c))).collect();
     checks.par_iter().try_for_each(|&(f, c)| {
         let camera = &rig.cameras[c];
         let path = &images[f][c];
         let frame = table[f].0;
-        let (w, h) = image::image_dimensions(path).map_err(|source| RecordingError::Image {
-            camera: camera.name.clone(),
-            frame,
-            error: IngestError::Decode { path: path.clone(), source },
-        })?;
+        let Ok((w, h)) = image::image_dimensions(path) else {
+            return Ok(());
+        };
         if (w, h) != (camera.width, camera.height) {
             return Err(RecordingError::ImageSize {
                 dir: dir.clone(),
@@ -1049,8 +1049,6 @@ mod tests {
             image::RgbImage::new(W + 1, H).save(d.join("right/000002.png")).expect("png");
         });
         assert!(e.contains("camera `right`") && e.contains("frame 2") && e.contains("9x6") && e.contains("8x6"), "{e}");
-        let e = open_err(|d| std::fs::write(d.join("left/000001.png"), b"not a png").expect("write"));
-        assert!(e.contains("camera `left`") && e.contains("frame 1") && e.contains("000001.png"), "{e}");
         let e =
             open_err(|d| std::fs::write(d.join(FRAMES_FILE), "frame,timestamp\n0,0.0\n1,0.04\n2,0.04\n").expect("csv"));
         assert!(
@@ -1108,5 +1106,20 @@ mod tests {
         let e = e.to_string();
         assert!(e.contains("camera `left`") && e.contains("frame 2"), "{e}");
         broken.read_frame_into(1, false, &mut b).expect("the frames around it are kept");
+    }
+
+    #[test]
+    fn an_image_broken_before_opening_costs_its_frame_set_only() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        make(tmp.path());
+        std::fs::write(tmp.path().join("left/000001.png"), b"not a png").expect("write");
+        let rec = Recording::open(tmp.path()).expect("a broken image does not refuse the recording");
+        let mut buf = vec![0u8; rec.frame_set_len()];
+        let e = rec.read_frame_into(1, false, &mut buf).unwrap_err();
+        assert!(e.is_bad_frame(), "{e}");
+        let e = e.to_string();
+        assert!(e.contains("camera `left`") && e.contains("frame 1") && e.contains("000001.png"), "{e}");
+        rec.read_frame_into(0, false, &mut buf).expect("frame 0 reads");
+        rec.read_frame_into(2, false, &mut buf).expect("frame 2 reads");
     }
 }
