@@ -210,7 +210,10 @@ pub fn track_recording(
                     continue;
                 }
             };
-            let pushed = flow.push(Estimate { index: k, dropped: skipped }, &buf, &mut on_estimate);
+            // Indexed by position, so a set skipped above is a gap the engine spans (as the
+            // flow stage does on a replay's sequence numbers) rather than one frame interval.
+            let pushed =
+                flow.push_partial_at(Estimate { index: k, dropped: skipped }, &buf, 0, k as u64, &mut on_estimate);
             let _ = spare_tx.send(buf);
             pushed.with_context(|| format!("frame {}", rec.frames()[k].frame))?;
             for record in record_rx.try_iter() {
