@@ -555,8 +555,8 @@ fn frames_lost_on_the_way_are_spanned_at_the_velocity_per_frame() {
         assert!(naive > 2.0 * err, "estimate {k}: {naive} without the indices, {err} with them");
     }
     // Over six frames a hand's path bends too far for constant velocity: the frame after
-    // the gap is matched against its successor only, from the posterior held still, and
-    // the plane's motion is found again.
+    // the gap is matched against its successor only, from the posterior held still with
+    // half of it drawn afresh, and the plane's motion is found again.
     let far = push_with_gaps(&[0, 1, 2, 8, 9], true);
     assert_eq!(far.len(), 3);
     assert!(far[2].1 && far[2].0 < 0.005, "{far:?}");

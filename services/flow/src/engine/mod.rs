@@ -186,8 +186,13 @@ enum Prior {
     /// The broad initial prior: no earlier estimate to build on.
     None,
     /// The previous frame's posterior, moved by its velocities times `step` frame
-    /// intervals (0 over a gap too long for constant velocity: held where it was).
+    /// intervals (1, or up to [`MAX_SPANNED_GAP_FRAMES`] over frames lost on the way).
     Carried { step: f32 },
+    /// A posterior from farther back than constant velocity spans (a live stage that fell
+    /// behind): held where it was, with [`STALE_FRESH_SHARE`] of each ray drawn afresh from
+    /// the broad prior. What stood still is still there; where a hand went, the old
+    /// particles are only a guess.
+    Stale,
     /// The previous pass's posterior for this same frame, unmoved.
     Held,
 }
@@ -590,14 +595,12 @@ impl SceneFlowEngine {
             (true, Some(slot)) => Some(self.slot_index[window.centre_slot()].saturating_sub(self.slot_index[slot])),
             _ => None,
         };
-        let carried = gap.is_some();
-        // Over a longer gap the posterior is the prior held where it was: a cold start would
-        // cost a live stage that already fell behind several frames' time.
         let prior = match gap {
             Some(g) if g <= MAX_SPANNED_GAP_FRAMES => Prior::Carried { step: g as f32 },
-            Some(_) => Prior::Carried { step: 0.0 },
+            Some(_) => Prior::Stale,
             None => Prior::None,
         };
+        let carried = gap.is_some();
         let mut evaluations = self.estimate_pass(window, frame, prior, 0);
         // A stream's first frame is seen with its successor alone: a third less evidence of
         // each depth, and the velocity pinned from one side only. It gets twice the extra
@@ -647,8 +650,12 @@ impl SceneFlowEngine {
             self.update_active(window.centre_slot());
         }
         if use_prior {
-            let step = if let Prior::Carried { step } = prior { step } else { 0.0 };
-            self.carry_posterior_forward(frame_key, step);
+            let (step, fresh_share) = match prior {
+                Prior::Carried { step } => (step, self.config.fresh_fraction),
+                Prior::Stale => (0.0, STALE_FRESH_SHARE.max(self.config.fresh_fraction)),
+                Prior::Held | Prior::None => (0.0, self.config.fresh_fraction),
+            };
+            self.carry_posterior_forward(frame_key, step, fresh_share);
             self.prior_counts.copy_from_slice(&self.counts);
         }
         let levels = self.config.pyramid_levels;
@@ -732,8 +739,9 @@ impl SceneFlowEngine {
     /// replaced by fresh random particles; empty rays are refilled from neighbours (dense)
     /// or stay empty (sparse).
     /// `step` scales the velocity move: 1 for the next frame, 0 to hold the posterior still
-    /// for another pass over the same frame.
-    fn carry_posterior_forward(&mut self, frame: u64, step: f32) {
+    /// for another pass over the same frame; `fresh_share` of each ray is then drawn from
+    /// the broad prior.
+    fn carry_posterior_forward(&mut self, frame: u64, step: f32, fresh_share: f32) {
         let n = self.config.particles_per_ray;
         let finest = finest_ray_level(&self.config);
         let grid = &self.grids[finest];
@@ -770,7 +778,7 @@ impl SceneFlowEngine {
                 }
             }
         }
-        let fresh = (self.config.fresh_fraction * n as f32).round() as usize;
+        let fresh = (fresh_share * n as f32).round() as usize;
         let refill = matches!(self.config.coverage, Coverage::Dense | Coverage::Skin);
         let active = (self.config.coverage == Coverage::Skin).then(|| self.active[finest].as_slice());
         let (seed, space) = (self.config.seed, self.space);
@@ -1291,11 +1299,18 @@ crate::matching::isa::vectorised_fn! {
     }
 }
 
+/// Share of each ray's particles drawn afresh from the broad prior when the posterior is
+/// stale (more than [`MAX_SPANNED_GAP_FRAMES`] back). Measured on `signer-3cam` with 17 frame sets lost (30 fps): held with
+/// the usual share, a hand was followed 7-17 cm off for five frames; with half drawn afresh,
+/// 6-7 cm off for two; the frame started cold instead left the head 6-7 cm off for two
+/// frames at 8 fps (its depth settles over several frames without extra passes).
+pub const STALE_FRESH_SHARE: f32 = 0.5;
+
 /// Most frame intervals the constant-velocity model spans, between the frames of a window
 /// and between a posterior and the next frame estimated from it: a frame or two lost on
 /// the way, while over longer gaps a hand's path bends too far for it (its miss grows
-/// with the square of the gap). A farther neighbour is left out of the window, a farther
-/// posterior is carried without moving its particles.
+/// with the square of the gap). A farther neighbour is left out of the window, and a farther
+/// posterior is held where it was with [`STALE_FRESH_SHARE`] of it drawn afresh.
 pub const MAX_SPANNED_GAP_FRAMES: u64 = 3;
 
 /// Candidates a ray weighs per iteration: its particles, four neighbours' best, exploration.
