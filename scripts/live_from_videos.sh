@@ -6,6 +6,7 @@
 # (samples, frames lost, glass-to-trajectory latency) and the scores.
 # Usage: scripts/live_from_videos.sh [RECORDING_DIR] [FPS]
 # CODEC=mjpeg encodes the PNG folders as Motion JPEG (what USB webcams send) instead of H.264.
+# KEEP_OUT=1 keeps the run's folder (pipeline file, log, trajectories) and prints its path.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 rec=$(realpath "${1:-../shared/data/real/caliscope-hands}")
@@ -17,7 +18,7 @@ fi
 bin=${HANDFLOW_BIN:-target/release/handflow}
 [ -x "$bin" ] || cargo build --release -q --workspace
 out=$(mktemp -d)
-trap 'rm -rf "$out"' EXIT
+[ -n "${KEEP_OUT:-}" ] || trap 'rm -rf "$out"' EXIT; echo "run folder: $out" >&2
 if [ -f "$rec/camera_array.toml" ]; then calibration=$rec/camera_array.toml; else calibration=$rec/rig.toml; fi
 printf 'mode = "live"\ncalibration = "%s"\nout = "%s/tracks.jsonl"\nservices = "live-videos-%s"\n' \
     "$calibration" "$out" "$$" >"$out/live.toml"
