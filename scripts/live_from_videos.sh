@@ -18,7 +18,7 @@ fi
 bin=${HANDFLOW_BIN:-target/release/handflow}
 [ -x "$bin" ] || cargo build --release -q --workspace
 out=$(mktemp -d)
-[ -n "${KEEP_OUT:-}" ] || trap 'rm -rf "$out"' EXIT; echo "run folder: $out" >&2
+if [ -n "${KEEP_OUT:-}" ]; then echo "run folder: $out" >&2; else trap 'rm -rf "$out"' EXIT; fi
 if [ -f "$rec/camera_array.toml" ]; then calibration=$rec/camera_array.toml; else calibration=$rec/rig.toml; fi
 printf 'mode = "live"\ncalibration = "%s"\nout = "%s/tracks.jsonl"\nservices = "live-videos-%s"\n' \
     "$calibration" "$out" "$$" >"$out/live.toml"
