@@ -128,6 +128,12 @@ pub struct TrackerConfig {
     /// Seconds a track may be predicted before it is lost (default 0.5; at 30 fps 15 frames,
     /// at 6 fps 3).
     pub lost_after_s: f64,
+    /// Seconds without any frame after which the tracks start afresh from the labelling
+    /// rules; after a shorter gap longer than `lost_after_s` each track is looked for where
+    /// it was last seen (default 1.0: at a signer's usual 0.3-1 m/s a hand goes farther
+    /// than the 0.3-0.5 m between the hands within a second, so where it was stops saying
+    /// which it is, while the signer's side still does).
+    pub relabel_after_s: f64,
     /// Two tracks whose clusters are closer than this, metres, are merged in this frame (one
     /// hand passing in front of the other): both coast on their predictions instead of
     /// taking the same blob and leaving it with each other's labels (default 0.04).
@@ -167,6 +173,7 @@ impl Default for TrackerConfig {
             max_acceleration_m_s2: 20.0,
             min_mass_share: 0.02,
             lost_after_s: 0.5,
+            relabel_after_s: 1.0,
             merge_distance_m: 0.04,
             split_distance_m: 0.15,
             velocity_gain: 0.5,
@@ -347,17 +354,30 @@ impl Tracker {
         self.not_started = None;
         // No frame at all for longer than a track may coast (a live stage that fell behind,
         // a stream that stalled): the constant-velocity predictions over that gap say
-        // nothing of where each hand is now, and following them swaps hands. The tracks
-        // are lost and start again from the labelling rules.
-        if t - self.time > self.config.lost_after_s {
-            if let Some(tracks) = self.tracks.as_mut() {
-                for k in tracks.iter_mut() {
+        // nothing of where each hand is now, and following them swaps hands. After a gap up
+        // to `relabel_after_s`, each track is looked for where it was last seen, its
+        // velocity forgotten (labelled afresh instead, a 6 fps live run took a stray cluster
+        // by the left hand for a hand and swapped the hands for the rest of the session);
+        // after a longer one, the tracks start again from the labelling rules.
+        let gap_s = t - self.time;
+        let long_gap = gap_s > self.config.lost_after_s;
+        if let Some(tracks) = self.tracks.as_mut() {
+            for k in tracks.iter_mut().filter(|_| long_gap) {
+                k.velocity = Vector3::zeros();
+                k.velocity_trusted = false;
+                if gap_s > self.config.relabel_after_s {
                     k.state = State::Lost;
                 }
             }
         }
         let tracks = match self.predictions(t) {
-            Some(predicted) => self.follow(t - self.time, predicted, &clusters, anchor),
+            Some(predicted) => self.follow(t - self.time, predicted, &clusters, anchor).map(|tracks| {
+                if long_gap {
+                    self.uncrossed(tracks)
+                } else {
+                    tracks
+                }
+            }),
             None => match self.start(&clusters, anchor) {
                 Ok(tracks) => Some(tracks),
                 Err(why) => {
@@ -427,6 +447,19 @@ impl Tracker {
         let (left, right) = if side(hands[0]) >= side(hands[1]) { (hands[0], hands[1]) } else { (hands[1], hands[0]) };
         self.assigned = [head, left, right].map(|cluster| Some(Measurement { cluster, pull: 1.0 }));
         Ok([head, left, right].map(|k| self.fresh(clusters[k], 1.0)))
+    }
+
+    /// After a gap longer than a track may coast: hands followed from where they were last
+    /// seen that come out on each other's side of the signer moved past each other unseen
+    /// (each took the other), so they trade places. Arms held crossed through a gap are
+    /// rarer than hands that swapped sides during it.
+    fn uncrossed(&mut self, mut tracks: [Track; 3]) -> [Track; 3] {
+        let side = |k: &Track| k.position.dot(&self.signer_left);
+        if side(&tracks[1]) < side(&tracks[2]) {
+            tracks.swap(1, 2);
+            self.assigned.swap(1, 2);
+        }
+        tracks
     }
 
     /// Later frames: the assignment of clusters to tracks that best matches the predicted
@@ -785,7 +818,7 @@ mod tests {
     }
 
     #[test]
-    fn after_a_gap_longer_than_a_track_may_coast_the_hands_are_labelled_afresh() {
+    fn after_a_gap_longer_than_a_track_may_coast_each_hand_is_looked_for_where_it_was() {
         let hands = |left: (f64, f64), right: (f64, f64)| {
             fit(vec![
                 cluster(0.0, 1.6, 0.0, 2.0),
@@ -799,7 +832,8 @@ mod tests {
         t.update(0.0, Some(&hands((0.25, -1.0), (-0.25, 1.0))));
         t.update(dt, Some(&hands((0.25 - dt, -1.0), (-0.25 + dt, 1.0))));
         // No frame for a second; the hands are back at their sides. Followed over the gap,
-        // each hand's prediction lies beyond the other hand, which it would take.
+        // each hand's prediction lies beyond the other hand, which it would take; where
+        // each was last seen, it is its own.
         let tracks = t.update(dt + 1.0, Some(&hands((0.25, 0.0), (-0.25, 0.0))));
         assert!(tracks.iter().all(|k| k.state == State::Tracked), "{tracks:?}");
         assert!((tracks[1].position.x - 0.25).abs() < 1e-9, "left hand on the signer's left: {tracks:?}");
@@ -807,6 +841,17 @@ mod tests {
         // A short gap is followed as before.
         let tracks = t.update(dt + 1.2, Some(&hands((0.2, 0.0), (-0.25, 0.0))));
         assert!((tracks[1].position.x - 0.2).abs() < 0.03, "{tracks:?}");
+        // Hands that swapped depths unseen (the left from in front of the body to behind
+        // the right hand's old place): the nearest each would take is the other hand, on the
+        // wrong side of the signer.
+        let at = |x: f64, z: f64| Component { position: Vector3::new(x, 1.1, z), ..cluster(0.0, 0.0, 0.0, 1.0) };
+        let frame = |l: (f64, f64), r: (f64, f64)| fit(vec![cluster(0.0, 1.6, 0.0, 2.0), at(l.0, l.1), at(r.0, r.1)]);
+        let mut t = tracker();
+        t.update(0.0, Some(&frame((0.1, 0.5), (-0.1, -0.5))));
+        t.update(dt, Some(&frame((0.1, 0.5), (-0.1, -0.5))));
+        let tracks = t.update(dt + 1.0, Some(&frame((0.2, -0.5), (-0.2, 0.5))));
+        assert!((tracks[1].position.x - 0.2).abs() < 1e-9, "left hand on the signer's left: {tracks:?}");
+        assert!((tracks[2].position.x + 0.2).abs() < 1e-9, "{tracks:?}");
     }
 
     #[test]
