@@ -75,6 +75,7 @@ fn run(args: Args) -> Result<()> {
         // Live: after the warm-up, go on from the newest frames rather than catch up.
         // and never wait for the face detector.
         Mode::Live => FlowStream::new(engine)
+            .with_frame_rate(fps)
             .with_backlog_limit(3)
             .without_waiting_for_models()
             .with_detect_every(frames_in(fps, LIVE_DETECT_INTERVAL_S)),
