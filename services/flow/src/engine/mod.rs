@@ -1300,10 +1300,11 @@ crate::matching::isa::vectorised_fn! {
 }
 
 /// Share of each ray's particles drawn afresh from the broad prior when the posterior is
-/// stale (more than [`MAX_SPANNED_GAP_FRAMES`] back). Measured on `signer-3cam` with 17 frame sets lost (30 fps): held with
-/// the usual share, a hand was followed 7-17 cm off for five frames; with half drawn afresh,
-/// 6-7 cm off for two; the frame started cold instead left the head 6-7 cm off for two
-/// frames at 8 fps (its depth settles over several frames without extra passes).
+/// stale (more than [`MAX_SPANNED_GAP_FRAMES`] back). Measured on `signer-3cam` with 17
+/// frame sets lost (30 fps): held with the usual share, a hand was followed 7-17 cm off for
+/// five frames; with half drawn afresh, 6-7 cm off for two; the frame started cold instead
+/// left the head 6-7 cm off for two frames at 8 fps (its depth settles over several frames
+/// without extra passes).
 pub const STALE_FRESH_SHARE: f32 = 0.5;
 
 /// Most frame intervals the constant-velocity model spans, between the frames of a window
