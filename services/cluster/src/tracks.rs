@@ -361,8 +361,8 @@ impl Tracker {
         // after a longer one, the tracks start again from the labelling rules.
         let gap_s = t - self.time;
         let long_gap = gap_s > self.config.lost_after_s;
-        if let Some(tracks) = self.tracks.as_mut() {
-            for k in tracks.iter_mut().filter(|_| long_gap) {
+        if let (true, Some(tracks)) = (long_gap, self.tracks.as_mut()) {
+            for k in tracks.iter_mut() {
                 k.velocity = Vector3::zeros();
                 k.velocity_trusted = false;
                 if gap_s > self.config.relabel_after_s {
@@ -371,7 +371,7 @@ impl Tracker {
             }
         }
         let tracks = match self.predictions(t) {
-            Some(predicted) => self.follow(t - self.time, predicted, &clusters, anchor).map(|tracks| {
+            Some(predicted) => self.follow(gap_s, predicted, &clusters, anchor).map(|tracks| {
                 if long_gap {
                     self.uncrossed(tracks)
                 } else {
