@@ -256,9 +256,9 @@ impl ClusterStage {
         // seed a hand on a few stray points while another component takes the hand
         // (measured on `signer-6fps`: the hands swapped at 1.5 s in one seed of six). A hand
         // whose component holds under half its usual mass gets a second start, each hand at
-        // its side's end of the person's skin, and the better-explaining fit is kept. Only
-        // then: tried on every frame, the second start took a stray blob by the legs for a
-        // hand in some seeds of the shared real session.
+        // its side's end of the person's skin, and a clearly better-explaining fit is kept.
+        // Only then: tried on every frame, the second start took a blob of points at a false
+        // depth below a hand for the hand in some seeds of the shared real session.
         let mut fit = initial.and_then(|init| {
             let first = self.fit_seeded(init, &returning);
             let starved = match (&first, self.tracker.tracks()) {
