@@ -21,7 +21,9 @@ use crate::engine::refine::{weighted_median_refine, RayEstimate};
 use crate::engine::rng::RayRng;
 use crate::matching::camera::LevelProjection;
 use crate::matching::image::{LocalNormalisation, Pyramid};
-use crate::matching::likelihood::{robust_window_cost, variance_likelihood, MatchImage, ReferenceWindow, MAX_IMAGES};
+use crate::matching::likelihood::{
+    robust_window_costs, variance_likelihood, MatchImage, ReferenceWindow, COST_LANES, MAX_IMAGES,
+};
 use crate::skin::model::SkinModel;
 
 /// Why the engine refused a configuration or a frame.
@@ -1508,27 +1510,39 @@ impl IterationContext<'_> {
         let elite_known = self.elite_cost_valid && self.best_prev[ray].is_valid() && cands[0].cost.is_finite();
         // The last loop's neighbour costs hold on this loop's images only on the same level.
         let memo_known = self.elite_cost_valid && memo.is_from_loop_before(self.loop_stamp);
+        // Where each candidate's cost comes from. A neighbour's best is often the very
+        // hypothesis this ray already holds (a good one spreads by propagation): the same
+        // depth and velocity on the same ray cost the same, so it is evaluated once and its
+        // cost copied, bit for bit. The rest are evaluated together, a batch of SIMD lanes.
+        let mut copy_of = [usize::MAX; MAX_CANDIDATES];
+        let mut batch = CandidateBatch::default();
         let mut evaluations = 0u64;
         for k in 0..m {
-            // A neighbour's best is often the very hypothesis this ray already holds (a good
-            // one spreads by propagation): the same depth and velocity on the same ray cost
-            // the same, so it is evaluated once and its cost copied, bit for bit.
-            if !(k == 0 && elite_known) {
-                let repeated = (0..k).find(|&j| same_hypothesis(&cands[j], &cands[k])).map(|j| cands[j].cost);
-                let remembered = || {
-                    let from_neighbour = memo_known && (neighbours_from..neighbours_to).contains(&k);
-                    from_neighbour.then(|| memo.cost_of(&cands[k])).flatten()
-                };
-                cands[k].cost = match repeated.or_else(remembered) {
-                    Some(cost) => cost,
-                    None => {
-                        evaluations += 1;
-                        let p = &cands[k];
-                        let pos = point_on_ray(self.origin, dir, p.depth);
-                        robust_window_cost(self.images, &reference, pos, p.velocity, self.config.truncation, self.keep)
-                    }
-                };
+            if k == 0 && elite_known {
+                continue;
             }
+            if let Some(j) = (0..k).find(|&j| same_hypothesis(&cands[j], &cands[k])) {
+                copy_of[k] = j;
+                continue;
+            }
+            let from_neighbour = memo_known && (neighbours_from..neighbours_to).contains(&k);
+            if let Some(cost) = from_neighbour.then(|| memo.cost_of(&cands[k])).flatten() {
+                cands[k].cost = cost;
+                continue;
+            }
+            evaluations += 1;
+            if batch.push(k, point_on_ray(self.origin, dir, cands[k].depth), cands[k].velocity) {
+                batch.cost_into(self, &reference, &mut cands);
+            }
+        }
+        batch.cost_into(self, &reference, &mut cands);
+        for k in 0..m {
+            if copy_of[k] != usize::MAX {
+                // The earlier candidate's cost is final: copies point backwards.
+                cands[k].cost = cands[copy_of[k]].cost;
+            }
+        }
+        for k in 0..m {
             let p = &cands[k];
             let v = p.velocity;
             let along = v[0] * sight[0] + v[1] * sight[1] + v[2] * sight[2];
@@ -1678,6 +1692,53 @@ fn in_image(projection: &LevelProjection, width: u32, height: u32, p: [f32; 3]) 
         && projection
             .project(p)
             .is_some_and(|[u, v]| u >= -0.5 && v >= -0.5 && u < width as f32 - 0.5 && v < height as f32 - 0.5)
+}
+
+/// Candidates of one ray waiting for their costs, one SIMD lane each.
+#[derive(Default)]
+struct CandidateBatch {
+    slots: [usize; COST_LANES],
+    position: [[f32; COST_LANES]; 3],
+    velocity: [[f32; COST_LANES]; 3],
+    len: usize,
+}
+
+impl CandidateBatch {
+    /// Adds candidate `slot`; true when the batch is full.
+    #[inline(always)]
+    fn push(&mut self, slot: usize, position: [f32; 3], velocity: [f32; 3]) -> bool {
+        let l = self.len;
+        self.slots[l] = slot;
+        for axis in 0..3 {
+            self.position[axis][l] = position[axis];
+            self.velocity[axis][l] = velocity[axis];
+        }
+        self.len += 1;
+        self.len == COST_LANES
+    }
+
+    /// Evaluates the waiting candidates into their slots of `cands` and empties the batch.
+    #[inline(always)]
+    fn cost_into(&mut self, ctx: &IterationContext<'_>, reference: &ReferenceWindow, cands: &mut [Particle]) {
+        if self.len == 0 {
+            return;
+        }
+        let mut costs = [0f32; COST_LANES];
+        robust_window_costs(
+            ctx.images,
+            reference,
+            &self.position,
+            &self.velocity,
+            self.len,
+            ctx.config.truncation,
+            ctx.keep,
+            &mut costs,
+        );
+        for (&slot, &cost) in self.slots[..self.len].iter().zip(&costs) {
+            cands[slot].cost = cost;
+        }
+        self.len = 0;
+    }
 }
 
 #[inline(always)]

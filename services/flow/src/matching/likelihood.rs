@@ -185,6 +185,64 @@ pub fn robust_window_cost(
     mean_of_smallest(&mut costs[..n], keep)
 }
 
+/// Candidates [`robust_window_costs`] takes at once: eight `f32` lanes fill an AVX2 register.
+pub const COST_LANES: usize = 8;
+
+/// [`robust_window_cost`] of up to [`COST_LANES`] particles of one ray (their world points
+/// `position` and velocities `velocity`, one lane each, `count` of them used), written into
+/// `out[..count]`. Every image projects all the points together ([`LevelProjection::project_lanes`]),
+/// then each point's window is compared on its own; each cost is `robust_window_cost`'s, bit
+/// for bit. Measured on the shared real session: the lens distortion alone took a sixth of
+/// the engine's time when each candidate was projected on its own.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub fn robust_window_costs(
+    images: &[MatchImage<'_>],
+    reference: &ReferenceWindow,
+    position: &[[f32; COST_LANES]; 3],
+    velocity: &[[f32; COST_LANES]; 3],
+    count: usize,
+    truncation: f32,
+    keep: usize,
+    out: &mut [f32; COST_LANES],
+) {
+    let count = count.min(COST_LANES);
+    let mut costs = [[0f32; MAX_IMAGES]; COST_LANES];
+    let mut n = [0usize; COST_LANES];
+    let norm = 1.0 / (reference.len as f32 * 3.0);
+    let (mut present, mut seen) = (0u8, [0u8; COST_LANES]);
+    for img in images {
+        if img.is_reference_now {
+            continue;
+        }
+        let bit = 1u8 << ((img.offset as i32 + 1).clamp(0, 2) as u32);
+        present |= bit;
+        let k = img.offset;
+        let points: [[f32; COST_LANES]; 3] =
+            std::array::from_fn(|axis| std::array::from_fn(|l| position[axis][l] + k * velocity[axis][l]));
+        let (mut u, mut v) = ([0f32; COST_LANES], [0f32; COST_LANES]);
+        let in_front = img.projection.project_lanes(&points, &mut u, &mut v);
+        for l in 0..count {
+            if !in_front[l] {
+                continue;
+            }
+            if let Some(c) = window_cost(img.image, reference, u[l], v[l], truncation) {
+                costs[l][n[l]] = c * norm;
+                n[l] += 1;
+                seen[l] |= bit;
+            }
+        }
+    }
+    for l in 0..count {
+        // As in `robust_window_cost`: a frame the point left entirely is one full mismatch.
+        for _ in 0..(present & !seen[l]).count_ones() {
+            costs[l][n[l]] = truncation;
+            n[l] += 1;
+        }
+        out[l] = if n[l] == 0 { truncation } else { mean_of_smallest(&mut costs[l][..n[l]], keep.clamp(1, n[l])) };
+    }
+}
+
 /// The mean of the `keep` smallest values. An insertion sort: `values` holds at most
 /// [`MAX_IMAGES`] costs, where a general selection's call and set-up cost more than the
 /// sort itself.
@@ -393,6 +451,79 @@ mod tests {
         let reference = ReferenceWindow::gather(&img, 5, 4, 1, 1);
         assert!(window_cost_interior(&img, &reference, 0.5, 4.0, 0.7).is_none());
         assert!(window_cost(&img, &reference, 0.5, 4.0, 0.7).is_some());
+    }
+
+    #[test]
+    fn batched_costs_equal_one_at_a_time_to_the_bit() {
+        let textured = |seed: f32| {
+            let mut img = ColourImage::new(16, 16);
+            for (i, p) in img.pixels_mut().iter_mut().enumerate() {
+                let f = i as f32 + seed;
+                *p = [(f * 0.37).sin(), (f * 0.11).cos(), (f * 0.05).sin() * 2.0, 0.0];
+            }
+            img
+        };
+        let wide = |x: f64, distortion: Distortion| {
+            let cam = Camera::new(
+                "c",
+                16,
+                16,
+                Matrix3::new(8.0, 0.0, 7.5, 0.0, 8.0, 7.5, 0.0, 0.0, 1.0),
+                distortion,
+                Rotation3::identity(),
+                Vector3::new(-x, 0.0, 0.0),
+            )
+            .expect("valid");
+            LevelProjection::new(&cam, 0)
+        };
+        let (a, b, c, d) = (textured(0.0), textured(3.0), textured(7.0), textured(11.0));
+        let pa = wide(0.0, Distortion::default());
+        let pb = wide(0.2, Distortion { k1: -0.1, k2: 0.01, p1: 0.002, p2: -0.001, k3: 0.0 });
+        let pc = wide(-0.2, Distortion::default());
+        let images = [
+            MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true },
+            MatchImage { offset: -1.0, image: &b, projection: &pa, is_reference_now: false },
+            MatchImage { offset: 1.0, image: &c, projection: &pa, is_reference_now: false },
+            MatchImage { offset: -1.0, image: &d, projection: &pb, is_reference_now: false },
+            MatchImage { offset: 0.0, image: &b, projection: &pb, is_reference_now: false },
+            MatchImage { offset: 1.0, image: &a, projection: &pc, is_reference_now: false },
+        ];
+        let reference = ReferenceWindow::gather(&a, 7, 8, 1, 1);
+        // Points inside every view, near a border, outside one frame, behind the cameras.
+        let points: [([f32; 3], [f32; 3]); COST_LANES] = [
+            ([0.0, 0.0, 2.0], [0.0; 3]),
+            ([0.1, -0.2, 1.5], [0.02, 0.01, -0.05]),
+            ([1.7, 0.0, 2.0], [0.3, 0.0, 0.0]),
+            ([-0.3, 0.4, 1.0], [-0.1, 0.0, 0.2]),
+            ([0.05, 0.05, 0.8], [0.0, 0.0, -0.9]),
+            ([0.0, 0.0, -1.0], [0.0; 3]),
+            ([0.4, 0.1, 3.0], [0.01, -0.02, 0.03]),
+            ([-0.9, -0.9, 1.2], [0.05, 0.05, 0.0]),
+        ];
+        for count in [1, 5, COST_LANES] {
+            for keep in [1, 3, 5] {
+                let position = std::array::from_fn(|axis| std::array::from_fn(|l| points[l].0[axis]));
+                let velocity = std::array::from_fn(|axis| std::array::from_fn(|l| points[l].1[axis]));
+                let mut out = [f32::NAN; COST_LANES];
+                robust_window_costs(&images, &reference, &position, &velocity, count, 0.7, keep, &mut out);
+                for (l, (pos, vel)) in points.iter().enumerate().take(count) {
+                    let one = robust_window_cost(&images, &reference, *pos, *vel, 0.7, keep);
+                    assert_eq!(
+                        out[l].to_bits(),
+                        one.to_bits(),
+                        "lane {l} of {count}, keep {keep}: {} vs {one}",
+                        out[l]
+                    );
+                }
+                assert!(out[count..].iter().all(|c| c.is_nan()), "lanes past the count are left alone");
+                if count == COST_LANES {
+                    // The lanes took different paths: a point seen everywhere matches better
+                    // than the truncation, one behind every camera costs it exactly.
+                    assert!(out[0] < 0.7, "{}", out[0]);
+                    assert_eq!(out[5], 0.7);
+                }
+            }
+        }
     }
 
     #[test]
