@@ -1276,6 +1276,36 @@ impl SkinTerm<'_> {
         }
         self.weight * h
     }
+
+    /// [`SkinTerm::log_weight`] of up to [`COST_LANES`] points, their projections across SIMD
+    /// lanes; each lane's sum runs over the views in `log_weight`'s order, so its bits too.
+    #[inline(always)]
+    fn log_weights(&self, pos: &[[f32; COST_LANES]; 3], out: &mut [f32; COST_LANES]) {
+        let (mut h, mut worst, mut seen) = ([0f32; COST_LANES], [f32::INFINITY; COST_LANES], [0u32; COST_LANES]);
+        for (q, ((map, proj), cam)) in self.maps.iter().zip(self.projections).zip(self.cameras).enumerate() {
+            if q == self.reference {
+                continue;
+            }
+            let (mut u, mut v) = ([0f32; COST_LANES], [0f32; COST_LANES]);
+            let in_front = proj.project_lanes(pos, &mut u, &mut v);
+            let (width, height) = (cam.width as f32, cam.height as f32);
+            for l in 0..COST_LANES {
+                let (x, y) = (u[l] + 0.5, v[l] + 0.5);
+                if in_front[l] && x > 0.0 && y > 0.0 && x < width && y < height {
+                    let Some(&hq) = map.get(y as usize * cam.width as usize + x as usize) else { continue };
+                    h[l] += hq;
+                    worst[l] = worst[l].min(hq);
+                    seen[l] += 1;
+                }
+            }
+        }
+        for l in 0..COST_LANES {
+            if self.drop_worst && seen[l] >= 2 {
+                h[l] -= worst[l];
+            }
+            out[l] = self.weight * h[l];
+        }
+    }
 }
 
 crate::matching::isa::vectorised_fn! {
@@ -1542,14 +1572,30 @@ impl IterationContext<'_> {
                 cands[k].cost = cands[copy_of[k]].cost;
             }
         }
+        // The skin term of every candidate, a batch of SIMD lanes at a time.
+        let mut skin_log_w = [0f32; MAX_CANDIDATES];
+        if let Some(skin) = &self.skin {
+            for (from, chunk) in skin_log_w[..m].chunks_mut(COST_LANES).enumerate() {
+                let first = from * COST_LANES;
+                // Lanes past the candidates repeat the first one; their weights are dropped.
+                let points: [[f32; 3]; COST_LANES] = std::array::from_fn(|l| {
+                    let k = if l < chunk.len() { first + l } else { first };
+                    point_on_ray(self.origin, dir, cands[k].depth)
+                });
+                let lanes = std::array::from_fn(|axis| std::array::from_fn(|l| points[l][axis]));
+                let mut out = [0f32; COST_LANES];
+                skin.log_weights(&lanes, &mut out);
+                chunk.copy_from_slice(&out[..chunk.len()]);
+            }
+        }
         for k in 0..m {
             let p = &cands[k];
             let v = p.velocity;
             let along = v[0] * sight[0] + v[1] * sight[1] + v[2] * sight[2];
             let across_sq = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2] - along * along).max(0.0);
             log_w[k] = -p.cost * inv_t - across_sq * prior_scale - along * along * prior_scale_depth;
-            if let Some(skin) = &self.skin {
-                log_w[k] += skin.log_weight(point_on_ray(self.origin, dir, p.depth));
+            if self.skin.is_some() {
+                log_w[k] += skin_log_w[k];
             }
             if let Some(c) = consensus {
                 // Truncated quadratic: smooth within a surface, free across a motion edge.
@@ -1841,5 +1887,42 @@ mod tests {
         assert_eq!(term.log_weight([0.0, 0.0, 3.0]), -4.0);
         // Behind the cameras: no view sees it, no evidence.
         assert_eq!(term.log_weight([0.0, 0.0, -3.0]), 0.0);
+    }
+
+    #[test]
+    fn the_skin_term_of_a_batch_is_each_points_to_the_bit() {
+        let cameras = vec![camera("ref", 0.0), camera("a", 0.2), camera("b", -0.2)];
+        // Maps that vary per pixel, so every lane reads its own values.
+        let map = |seed: f32| (0..32 * 24).map(|i| ((i as f32 + seed) * 0.37).sin() * 3.0).collect::<Vec<f32>>();
+        let maps = vec![map(0.0), map(5.0), map(9.0)];
+        let projections: Vec<LevelProjection> = cameras.iter().map(|c| LevelProjection::new(c, 0)).collect();
+        for drop_worst in [false, true] {
+            let term = SkinTerm {
+                maps: &maps,
+                projections: &projections,
+                cameras: &cameras,
+                reference: 0,
+                weight: 1.7,
+                drop_worst,
+            };
+            // Seen by both other views, by one, by none (outside, behind).
+            let points: [[f32; 3]; COST_LANES] = [
+                [0.0, 0.0, 3.0],
+                [0.1, -0.05, 2.0],
+                [-0.2, 0.1, 4.0],
+                [0.9, 0.0, 2.0],
+                [-0.9, 0.0, 2.0],
+                [5.0, 5.0, 1.0],
+                [0.0, 0.0, -3.0],
+                [0.05, 0.02, 2.5],
+            ];
+            let lanes = std::array::from_fn(|axis| std::array::from_fn(|l| points[l][axis]));
+            let mut out = [0f32; COST_LANES];
+            term.log_weights(&lanes, &mut out);
+            for (l, p) in points.iter().enumerate() {
+                assert_eq!(out[l].to_bits(), term.log_weight(*p).to_bits(), "lane {l}, drop_worst {drop_worst}");
+            }
+            assert!(out[0] != out[1] && out[6] == 0.0, "{out:?}");
+        }
     }
 }
