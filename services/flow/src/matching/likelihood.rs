@@ -207,7 +207,9 @@ pub fn robust_window_costs(
     out: &mut [f32; COST_LANES],
 ) {
     let count = count.min(COST_LANES);
-    let mut costs = [[0f32; MAX_IMAGES]; COST_LANES];
+    // One row per image, one lane per candidate; slots a candidate does not fill stay
+    // infinite, so they sort last.
+    let mut costs = [[f32::INFINITY; COST_LANES]; MAX_IMAGES];
     let mut n = [0usize; COST_LANES];
     let norm = 1.0 / (reference.len as f32 * 3.0);
     let (mut present, mut seen) = (0u8, [0u8; COST_LANES]);
@@ -227,7 +229,7 @@ pub fn robust_window_costs(
                 continue;
             }
             if let Some(c) = window_cost(img.image, reference, u[l], v[l], truncation) {
-                costs[l][n[l]] = c * norm;
+                costs[n[l]][l] = c * norm;
                 n[l] += 1;
                 seen[l] |= bit;
             }
@@ -236,11 +238,70 @@ pub fn robust_window_costs(
     for l in 0..count {
         // As in `robust_window_cost`: a frame the point left entirely is one full mismatch.
         for _ in 0..(present & !seen[l]).count_ones() {
-            costs[l][n[l]] = truncation;
+            costs[n[l]][l] = truncation;
             n[l] += 1;
         }
-        out[l] = if n[l] == 0 { truncation } else { mean_of_smallest(&mut costs[l][..n[l]], keep.clamp(1, n[l])) };
     }
+    let most = n[..count].iter().copied().max().unwrap_or(0);
+    if most <= SORTED_ROWS {
+        // Every lane sorted at once by a fixed network: the insertion sort's branches
+        // mispredicted on every candidate. The sorted values are the same, so are the sums.
+        let rows: &mut [[f32; COST_LANES]; SORTED_ROWS] = (&mut costs[..SORTED_ROWS]).try_into().expect("rows");
+        for &(a, b) in SORT_NETWORK.iter() {
+            let (a, b) = (usize::from(a), usize::from(b));
+            let (x, y) = (rows[a], rows[b]);
+            rows[a] = std::array::from_fn(|l| if x[l] < y[l] { x[l] } else { y[l] });
+            rows[b] = std::array::from_fn(|l| if x[l] < y[l] { y[l] } else { x[l] });
+        }
+        for l in 0..count {
+            out[l] = if n[l] == 0 {
+                truncation
+            } else {
+                let keep = keep.clamp(1, n[l]);
+                rows[..keep].iter().map(|row| row[l]).sum::<f32>() / keep as f32
+            };
+        }
+        return;
+    }
+    for l in 0..count {
+        let mut values: [f32; MAX_IMAGES] = std::array::from_fn(|i| costs[i][l]);
+        out[l] = if n[l] == 0 { truncation } else { mean_of_smallest(&mut values[..n[l]], keep.clamp(1, n[l])) };
+    }
+}
+
+/// Rows [`robust_window_costs`] sorts with [`SORT_NETWORK`]: 11 images of four cameras at
+/// three frames, plus up to three frames counted as unseen, fit.
+const SORTED_ROWS: usize = 16;
+
+/// Batcher's odd-even merge sort of [`SORTED_ROWS`] values: 63 compare-exchanges, the same
+/// for every input, so eight lanes go through it together.
+const SORT_NETWORK: [(u8, u8); 63] = odd_even_merge_sort();
+
+const fn odd_even_merge_sort() -> [(u8, u8); 63] {
+    let mut pairs = [(0u8, 0u8); 63];
+    let mut len = 0;
+    let mut p = 1;
+    while p < SORTED_ROWS {
+        let mut k = p;
+        while k >= 1 {
+            let mut j = k % p;
+            while j + k < SORTED_ROWS {
+                let mut i = 0;
+                while i < k && i + j + k < SORTED_ROWS {
+                    if (i + j) / (2 * p) == (i + j + k) / (2 * p) {
+                        pairs[len] = ((i + j) as u8, (i + j + k) as u8);
+                        len += 1;
+                    }
+                    i += 1;
+                }
+                j += 2 * k;
+            }
+            k /= 2;
+        }
+        p *= 2;
+    }
+    assert!(len == 63, "Batcher's network of 16 has 63 comparators");
+    pairs
 }
 
 /// The mean of the `keep` smallest values. An insertion sort: `values` holds at most
@@ -500,29 +561,43 @@ mod tests {
             ([0.4, 0.1, 3.0], [0.01, -0.02, 0.03]),
             ([-0.9, -0.9, 1.2], [0.05, 0.05, 0.0]),
         ];
-        for count in [1, 5, COST_LANES] {
-            for keep in [1, 3, 5] {
-                let position = std::array::from_fn(|axis| std::array::from_fn(|l| points[l].0[axis]));
-                let velocity = std::array::from_fn(|axis| std::array::from_fn(|l| points[l].1[axis]));
-                let mut out = [f32::NAN; COST_LANES];
-                robust_window_costs(&images, &reference, &position, &velocity, count, 0.7, keep, &mut out);
-                for (l, (pos, vel)) in points.iter().enumerate().take(count) {
-                    let one = robust_window_cost(&images, &reference, *pos, *vel, 0.7, keep);
-                    assert_eq!(
-                        out[l].to_bits(),
-                        one.to_bits(),
-                        "lane {l} of {count}, keep {keep}: {} vs {one}",
-                        out[l]
-                    );
-                }
-                assert!(out[count..].iter().all(|c| c.is_nan()), "lanes past the count are left alone");
-                if count == COST_LANES {
-                    // The lanes took different paths: a point seen everywhere matches better
-                    // than the truncation, one behind every camera costs it exactly.
-                    assert!(out[0] < 0.7, "{}", out[0]);
-                    assert_eq!(out[5], 0.7);
+        // Twenty other images: more costs than the sorting network takes.
+        let many: Vec<MatchImage<'_>> = images.iter().cycle().take(24).copied().collect();
+        for (images, count, keep) in [1, 5, COST_LANES]
+            .into_iter()
+            .flat_map(|count| [1, 3, 5].map(|keep| (&images[..], count, keep)))
+            .chain([(&many[..], COST_LANES, 12)])
+        {
+            let position = std::array::from_fn(|axis| std::array::from_fn(|l| points[l].0[axis]));
+            let velocity = std::array::from_fn(|axis| std::array::from_fn(|l| points[l].1[axis]));
+            let mut out = [f32::NAN; COST_LANES];
+            robust_window_costs(images, &reference, &position, &velocity, count, 0.7, keep, &mut out);
+            for (l, (pos, vel)) in points.iter().enumerate().take(count) {
+                let one = robust_window_cost(images, &reference, *pos, *vel, 0.7, keep);
+                assert_eq!(out[l].to_bits(), one.to_bits(), "lane {l} of {count}, keep {keep}: {} vs {one}", out[l]);
+            }
+            assert!(out[count..].iter().all(|c| c.is_nan()), "lanes past the count are left alone");
+            if count == COST_LANES {
+                // The lanes took different paths: a point seen everywhere matches better
+                // than the truncation, one behind every camera costs it exactly.
+                assert!(out[0] < 0.7, "{}", out[0]);
+                assert_eq!(out[5], 0.7);
+            }
+        }
+    }
+
+    #[test]
+    fn the_sorting_network_sorts_every_input() {
+        // Every 0-1 input of 16 values sorted means every input is (the 0-1 principle).
+        for bits in 0u32..(1 << SORTED_ROWS) {
+            let mut v: [u8; SORTED_ROWS] = std::array::from_fn(|i| ((bits >> i) & 1) as u8);
+            for &(a, b) in SORT_NETWORK.iter() {
+                let (a, b) = (usize::from(a), usize::from(b));
+                if v[a] > v[b] {
+                    v.swap(a, b);
                 }
             }
+            assert!(v.windows(2).all(|w| w[0] <= w[1]), "{bits:#x}: {v:?}");
         }
     }
 
