@@ -224,15 +224,36 @@ pub fn robust_window_costs(
             std::array::from_fn(|axis| std::array::from_fn(|l| position[axis][l] + k * velocity[axis][l]));
         let (mut u, mut v) = ([0f32; COST_LANES], [0f32; COST_LANES]);
         let in_front = img.projection.project_lanes(&points, &mut u, &mut v);
+        // `window_cost`'s tests and texel indices, lane by lane.
+        let (w, h) = (img.image.width(), img.image.height());
+        let (wmax, hmax) = ((w - 1) as f32, (h - 1) as f32);
+        let inside: [bool; COST_LANES] =
+            std::array::from_fn(|l| in_front[l] && u[l] >= 0.0 && v[l] >= 0.0 && u[l] <= wmax && v[l] <= hmax);
+        // Inside, u and v are >= 0, so the conversion truncates to their floor.
+        let (cx, cy): ([i32; COST_LANES], [i32; COST_LANES]) =
+            (std::array::from_fn(|l| u[l] as i32), std::array::from_fn(|l| v[l] as i32));
+        let (fx, fy): ([f32; COST_LANES], [f32; COST_LANES]) =
+            (std::array::from_fn(|l| u[l] - cx[l] as f32), std::array::from_fn(|l| v[l] - cy[l] as f32));
+        let r = reference.radius as i32;
+        let interior: [bool; COST_LANES] =
+            std::array::from_fn(|l| cx[l] >= r && cy[l] >= r && cx[l] + r + 1 < w as i32 && cy[l] + r + 1 < h as i32);
         for l in 0..count {
-            if !in_front[l] {
+            if !inside[l] {
                 continue;
             }
-            if let Some(c) = window_cost(img.image, reference, u[l], v[l], truncation) {
-                costs[n[l]][l] = c * norm;
-                n[l] += 1;
-                seen[l] |= bit;
-            }
+            let corner = || (cy[l] - r) as usize * w + (cx[l] - r) as usize;
+            let c = match (reference.step, reference.radius) {
+                (1, 1) if interior[l] => {
+                    window_cost_at::<3, 4>(img.image, reference, corner(), fx[l], fy[l], truncation)
+                }
+                (1, 2) if interior[l] => {
+                    window_cost_at::<5, 6>(img.image, reference, corner(), fx[l], fy[l], truncation)
+                }
+                _ => window_cost_clamped(img.image, reference, u[l], v[l], truncation),
+            };
+            costs[n[l]][l] = c * norm;
+            n[l] += 1;
+            seen[l] |= bit;
         }
     }
     for l in 0..count {
@@ -394,12 +415,26 @@ fn window_cost_interior_fixed<const R: usize, const SIDE: usize, const TEXELS: u
         return None;
     }
     let (fx, fy) = (u - cx as f32, v - cy as f32);
-    let (x0, y0) = (cx - R, cy - R);
+    Some(window_cost_at::<SIDE, TEXELS>(image, reference, (cy - R) * w + (cx - R), fx, fy, truncation))
+}
+
+/// The interior window whose top-left texel is `corner` (a pixel index), at fractional
+/// offsets `fx`, `fy` within the texels.
+#[inline(always)]
+fn window_cost_at<const SIDE: usize, const TEXELS: usize>(
+    image: &ColourImage,
+    reference: &ReferenceWindow,
+    corner: usize,
+    fx: f32,
+    fy: f32,
+    truncation: f32,
+) -> f32 {
+    let w = image.width();
     let pixels = image.pixels();
     let mut acc = [0f32; 4];
-    let mut upper = lerp_row::<SIDE, TEXELS>(pixels, y0 * w + x0, fx);
+    let mut upper = lerp_row::<SIDE, TEXELS>(pixels, corner, fx);
     for j in 0..SIDE {
-        let lower = lerp_row::<SIDE, TEXELS>(pixels, (y0 + j + 1) * w + x0, fx);
+        let lower = lerp_row::<SIDE, TEXELS>(pixels, corner + (j + 1) * w, fx);
         for i in 0..SIDE {
             let refc = reference.colours[j * SIDE + i];
             for k in 0..4 {
@@ -409,7 +444,7 @@ fn window_cost_interior_fixed<const R: usize, const SIDE: usize, const TEXELS: u
         }
         upper = lower;
     }
-    Some(acc[0] + acc[1] + acc[2] + acc[3])
+    acc[0] + acc[1] + acc[2] + acc[3]
 }
 
 /// `SIDE` samples along a texel row starting at `base`, each interpolated at `fx` between
