@@ -1578,11 +1578,18 @@ impl IterationContext<'_> {
             for (from, chunk) in skin_log_w[..m].chunks_mut(COST_LANES).enumerate() {
                 let first = from * COST_LANES;
                 // Lanes past the candidates repeat the first one; their weights are dropped.
-                let points: [[f32; 3]; COST_LANES] = std::array::from_fn(|l| {
+                // A plain loop: `array::from_fn` here was not inlined (so not built for AVX2).
+                let mut points = [[0f32; 3]; COST_LANES];
+                for (l, point) in points.iter_mut().enumerate() {
                     let k = if l < chunk.len() { first + l } else { first };
-                    point_on_ray(self.origin, dir, cands[k].depth)
-                });
-                let lanes = std::array::from_fn(|axis| std::array::from_fn(|l| points[l][axis]));
+                    *point = point_on_ray(self.origin, dir, cands[k].depth);
+                }
+                let mut lanes = [[0f32; COST_LANES]; 3];
+                for (axis, row) in lanes.iter_mut().enumerate() {
+                    for (slot, point) in row.iter_mut().zip(&points) {
+                        *slot = point[axis];
+                    }
+                }
                 let mut out = [0f32; COST_LANES];
                 skin.log_weights(&lanes, &mut out);
                 chunk.copy_from_slice(&out[..chunk.len()]);

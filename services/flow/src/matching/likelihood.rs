@@ -194,7 +194,8 @@ pub const COST_LANES: usize = 8;
 /// then each point's window is compared on its own; each cost is `robust_window_cost`'s, bit
 /// for bit. Measured on the shared real session: the lens distortion alone took a sixth of
 /// the engine's time when each candidate was projected on its own.
-#[allow(clippy::too_many_arguments)]
+// Lane loops index several arrays by lane; iterators would hide that.
+#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
 #[inline(always)]
 pub fn robust_window_costs(
     images: &[MatchImage<'_>],
@@ -220,23 +221,30 @@ pub fn robust_window_costs(
         let bit = 1u8 << ((img.offset as i32 + 1).clamp(0, 2) as u32);
         present |= bit;
         let k = img.offset;
-        let points: [[f32; COST_LANES]; 3] =
-            std::array::from_fn(|axis| std::array::from_fn(|l| position[axis][l] + k * velocity[axis][l]));
+        // Plain lane loops: `array::from_fn` here was not always inlined, and outside this
+        // function its code is not compiled for AVX2.
+        let mut points = [[0f32; COST_LANES]; 3];
+        for axis in 0..3 {
+            for l in 0..COST_LANES {
+                points[axis][l] = position[axis][l] + k * velocity[axis][l];
+            }
+        }
         let (mut u, mut v) = ([0f32; COST_LANES], [0f32; COST_LANES]);
         let in_front = img.projection.project_lanes(&points, &mut u, &mut v);
         // `window_cost`'s tests and texel indices, lane by lane.
         let (w, h) = (img.image.width(), img.image.height());
         let (wmax, hmax) = ((w - 1) as f32, (h - 1) as f32);
-        let inside: [bool; COST_LANES] =
-            std::array::from_fn(|l| in_front[l] && u[l] >= 0.0 && v[l] >= 0.0 && u[l] <= wmax && v[l] <= hmax);
-        // Inside, u and v are >= 0, so the conversion truncates to their floor.
-        let (cx, cy): ([i32; COST_LANES], [i32; COST_LANES]) =
-            (std::array::from_fn(|l| u[l] as i32), std::array::from_fn(|l| v[l] as i32));
-        let (fx, fy): ([f32; COST_LANES], [f32; COST_LANES]) =
-            (std::array::from_fn(|l| u[l] - cx[l] as f32), std::array::from_fn(|l| v[l] - cy[l] as f32));
         let r = reference.radius as i32;
-        let interior: [bool; COST_LANES] =
-            std::array::from_fn(|l| cx[l] >= r && cy[l] >= r && cx[l] + r + 1 < w as i32 && cy[l] + r + 1 < h as i32);
+        let (mut inside, mut interior) = ([false; COST_LANES], [false; COST_LANES]);
+        let (mut cx, mut cy) = ([0i32; COST_LANES], [0i32; COST_LANES]);
+        let (mut fx, mut fy) = ([0f32; COST_LANES], [0f32; COST_LANES]);
+        for l in 0..COST_LANES {
+            inside[l] = in_front[l] && u[l] >= 0.0 && v[l] >= 0.0 && u[l] <= wmax && v[l] <= hmax;
+            // Inside, u and v are >= 0, so the conversion truncates to their floor.
+            (cx[l], cy[l]) = (u[l] as i32, v[l] as i32);
+            (fx[l], fy[l]) = (u[l] - cx[l] as f32, v[l] - cy[l] as f32);
+            interior[l] = cx[l] >= r && cy[l] >= r && cx[l] + r + 1 < w as i32 && cy[l] + r + 1 < h as i32;
+        }
         for l in 0..count {
             if !inside[l] {
                 continue;
@@ -271,8 +279,9 @@ pub fn robust_window_costs(
         for &(a, b) in SORT_NETWORK.iter() {
             let (a, b) = (usize::from(a), usize::from(b));
             let (x, y) = (rows[a], rows[b]);
-            rows[a] = std::array::from_fn(|l| if x[l] < y[l] { x[l] } else { y[l] });
-            rows[b] = std::array::from_fn(|l| if x[l] < y[l] { y[l] } else { x[l] });
+            for l in 0..COST_LANES {
+                (rows[a][l], rows[b][l]) = if x[l] < y[l] { (x[l], y[l]) } else { (y[l], x[l]) };
+            }
         }
         for l in 0..count {
             out[l] = if n[l] == 0 {
