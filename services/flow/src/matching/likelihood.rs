@@ -144,6 +144,8 @@ impl ReferenceWindow {
 /// point is occluded do not spoil it. Images the point falls outside of do not vote at all:
 /// counting them as mismatches would bias every ray near the border towards hypotheses
 /// that keep their projections inside the frame. With no vote, the cost is the maximum.
+/// The definition for one particle: the engine computes it eight at a time with
+/// [`robust_window_costs`], which gives these bits.
 #[inline(always)]
 pub fn robust_window_cost(
     images: &[MatchImage<'_>],
