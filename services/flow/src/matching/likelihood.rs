@@ -136,66 +136,26 @@ impl ReferenceWindow {
     }
 }
 
-/// handflow's matching cost of a particle, lower is better: for every image other than the
-/// reference at t, the truncated L1 colour difference between the reference window and the
-/// window around the particle's projection (the window translated, not warped: at the
-/// scale of a few pixels the local warp between views is close to a translation), averaged
-/// over samples and channels. Only the best `keep` images are averaged, so views where the
-/// point is occluded do not spoil it. Images the point falls outside of do not vote at all:
-/// counting them as mismatches would bias every ray near the border towards hypotheses
-/// that keep their projections inside the frame. With no vote, the cost is the maximum.
-/// The definition for one particle: the engine computes it eight at a time with
-/// [`robust_window_costs`], which gives these bits.
-#[inline(always)]
-pub fn robust_window_cost(
-    images: &[MatchImage<'_>],
-    reference: &ReferenceWindow,
-    position: [f32; 3],
-    velocity: [f32; 3],
-    truncation: f32,
-    keep: usize,
-) -> f32 {
-    let mut costs = [truncation; MAX_IMAGES];
-    let mut n = 0usize;
-    let norm = 1.0 / (reference.len as f32 * 3.0);
-    // Frames (by offset -1, 0, +1) that have images, and those where the point was seen.
-    let (mut present, mut seen) = (0u8, 0u8);
-    for img in images {
-        if img.is_reference_now {
-            continue;
-        }
-        let bit = 1u8 << ((img.offset as i32 + 1).clamp(0, 2) as u32);
-        present |= bit;
-        let p = displaced(position, velocity, img.offset);
-        let Some([u, v]) = img.projection.project(p) else { continue };
-        if let Some(c) = window_cost(img.image, reference, u, v, truncation) {
-            costs[n] = c * norm;
-            n += 1;
-            seen |= bit;
-        }
-    }
-    // A frame the point left entirely gives no evidence of the motion: count it as one full
-    // mismatch, or moving out of every image would be the cheapest explanation of anything.
-    for _ in 0..(present & !seen).count_ones() {
-        costs[n] = truncation;
-        n += 1;
-    }
-    if n == 0 {
-        return truncation;
-    }
-    let keep = keep.clamp(1, n);
-    mean_of_smallest(&mut costs[..n], keep)
-}
-
 /// Candidates [`robust_window_costs`] takes at once: eight `f32` lanes fill an AVX2 register.
 pub const COST_LANES: usize = 8;
 
-/// [`robust_window_cost`] of up to [`COST_LANES`] particles of one ray (their world points
+/// handflow's matching cost of up to [`COST_LANES`] particles of one ray (their world points
 /// `position` and velocities `velocity`, one lane each, `count` of them used), written into
-/// `out[..count]`. Every image projects all the points together ([`LevelProjection::project_lanes`]),
-/// then each point's window is compared on its own; each cost is `robust_window_cost`'s, bit
-/// for bit. Measured on the shared real session: the lens distortion alone took a sixth of
-/// the engine's time when each candidate was projected on its own.
+/// `out[..count]`; lower is better. Per particle: for every image other than the reference
+/// at t, the truncated L1 colour difference between the reference window and the window
+/// around the particle's projection (the window translated, not warped: at the scale of a
+/// few pixels the local warp between views is close to a translation), averaged over
+/// samples and channels. Only the best `keep` images are averaged, so views where the point
+/// is occluded do not spoil it. Images the point falls outside of do not vote at all:
+/// counting them as mismatches would bias every ray near the border towards hypotheses
+/// that keep their projections inside the frame. With no vote, the cost is the maximum.
+///
+/// Every image projects all the points together ([`LevelProjection::project_lanes`]), and
+/// the window's bounds test and texel index are computed lane by lane; then each point's
+/// window is compared on its own. Each cost is that of the particle costed alone, bit for
+/// bit (the tests keep that one-particle form). Measured on the shared real session: the
+/// lens distortion alone took a sixth of the engine's time when each candidate was
+/// projected on its own.
 // Lane loops index several arrays by lane; iterators would hide that.
 #[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
 #[inline(always)]
@@ -233,7 +193,7 @@ pub fn robust_window_costs(
         }
         let (mut u, mut v) = ([0f32; COST_LANES], [0f32; COST_LANES]);
         let in_front = img.projection.project_lanes(&points, &mut u, &mut v);
-        // `window_cost`'s tests and texel indices, lane by lane.
+        // Whether each point's window centre is inside the image, and its texel patch too.
         let (w, h) = (img.image.width(), img.image.height());
         let (wmax, hmax) = ((w - 1) as f32, (h - 1) as f32);
         let r = reference.radius as i32;
@@ -267,7 +227,9 @@ pub fn robust_window_costs(
         }
     }
     for l in 0..count {
-        // As in `robust_window_cost`: a frame the point left entirely is one full mismatch.
+        // A frame the point left entirely gives no evidence of the motion: count it as one
+        // full mismatch, or moving out of every image would be the cheapest explanation of
+        // anything.
         for _ in 0..(present & !seen[l]).count_ones() {
             costs[n[l]][l] = truncation;
             n[l] += 1;
@@ -353,23 +315,6 @@ fn mean_of_smallest(values: &mut [f32], keep: usize) -> f32 {
     values[..keep].iter().sum::<f32>() / keep as f32
 }
 
-/// Sum over the window and channels of `min(|ref - sample|, truncation)`, or `None` when
-/// the window's centre falls outside the image.
-#[inline(always)]
-fn window_cost(image: &ColourImage, reference: &ReferenceWindow, u: f32, v: f32, truncation: f32) -> Option<f32> {
-    let wmax = (image.width() - 1) as f32;
-    let hmax = (image.height() - 1) as f32;
-    if !(u >= 0.0 && v >= 0.0 && u <= wmax && v <= hmax) {
-        return None;
-    }
-    if reference.step == 1 {
-        if let Some(cost) = window_cost_interior(image, reference, u, v, truncation) {
-            return Some(cost);
-        }
-    }
-    Some(window_cost_clamped(image, reference, u, v, truncation))
-}
-
 /// The general case: every sample bilinear on its own, clamped to the image.
 fn window_cost_clamped(image: &ColourImage, reference: &ReferenceWindow, u: f32, v: f32, truncation: f32) -> f32 {
     let wmax = (image.width() - 1) as f32;
@@ -396,40 +341,7 @@ fn window_cost_clamped(image: &ColourImage, reference: &ReferenceWindow, u: f32,
 /// share one fractional offset, so the `(2r+2)^2` texels are interpolated along rows once
 /// and the rows blended per sample: 16 loads for a 3x3 window instead of 36. Radii 1 and 2
 /// are compiled with their sizes known, so the loops unroll into SIMD over the four lanes.
-#[inline(always)]
-fn window_cost_interior(
-    image: &ColourImage,
-    reference: &ReferenceWindow,
-    u: f32,
-    v: f32,
-    truncation: f32,
-) -> Option<f32> {
-    match reference.radius {
-        1 => window_cost_interior_fixed::<1, 3, 4>(image, reference, u, v, truncation),
-        2 => window_cost_interior_fixed::<2, 5, 6>(image, reference, u, v, truncation),
-        _ => None,
-    }
-}
-
-#[inline(always)]
-fn window_cost_interior_fixed<const R: usize, const SIDE: usize, const TEXELS: usize>(
-    image: &ColourImage,
-    reference: &ReferenceWindow,
-    u: f32,
-    v: f32,
-    truncation: f32,
-) -> Option<f32> {
-    let (w, h) = (image.width(), image.height());
-    // u, v >= 0 here, so truncation is floor (and avoids a libm call without SSE4.1).
-    let (cx, cy) = (u as usize, v as usize);
-    if cx < R || cy < R || cx + R + 1 >= w || cy + R + 1 >= h {
-        return None;
-    }
-    let (fx, fy) = (u - cx as f32, v - cy as f32);
-    Some(window_cost_at::<SIDE, TEXELS>(image, reference, (cy - R) * w + (cx - R), fx, fy, truncation))
-}
-
-/// The interior window whose top-left texel is `corner` (a pixel index), at fractional
+/// This is the window whose top-left texel is `corner` (a pixel index), at fractional
 /// offsets `fx`, `fy` within the texels.
 #[inline(always)]
 fn window_cost_at<const SIDE: usize, const TEXELS: usize>(
@@ -494,6 +406,96 @@ mod tests {
         )
         .expect("valid");
         LevelProjection::new(&cam, 0)
+    }
+
+    /// The one-particle form the lanes of [`robust_window_costs`] must give bit for bit: each
+    /// point projected, its window cost taken, the costs sorted, one at a time.
+    fn robust_window_cost(
+        images: &[MatchImage<'_>],
+        reference: &ReferenceWindow,
+        position: [f32; 3],
+        velocity: [f32; 3],
+        truncation: f32,
+        keep: usize,
+    ) -> f32 {
+        let mut costs = [truncation; MAX_IMAGES];
+        let mut n = 0usize;
+        let norm = 1.0 / (reference.len as f32 * 3.0);
+        // Frames (by offset -1, 0, +1) that have images, and those where the point was seen.
+        let (mut present, mut seen) = (0u8, 0u8);
+        for img in images {
+            if img.is_reference_now {
+                continue;
+            }
+            let bit = 1u8 << ((img.offset as i32 + 1).clamp(0, 2) as u32);
+            present |= bit;
+            let p = displaced(position, velocity, img.offset);
+            let Some([u, v]) = img.projection.project(p) else { continue };
+            if let Some(c) = window_cost(img.image, reference, u, v, truncation) {
+                costs[n] = c * norm;
+                n += 1;
+                seen |= bit;
+            }
+        }
+        // A frame the point left entirely gives no evidence of the motion: count it as one full
+        // mismatch, or moving out of every image would be the cheapest explanation of anything.
+        for _ in 0..(present & !seen).count_ones() {
+            costs[n] = truncation;
+            n += 1;
+        }
+        if n == 0 {
+            return truncation;
+        }
+        let keep = keep.clamp(1, n);
+        mean_of_smallest(&mut costs[..n], keep)
+    }
+
+    /// Sum over the window and channels of `min(|ref - sample|, truncation)`, or `None` when
+    /// the window's centre falls outside the image.
+    fn window_cost(image: &ColourImage, reference: &ReferenceWindow, u: f32, v: f32, truncation: f32) -> Option<f32> {
+        let wmax = (image.width() - 1) as f32;
+        let hmax = (image.height() - 1) as f32;
+        if !(u >= 0.0 && v >= 0.0 && u <= wmax && v <= hmax) {
+            return None;
+        }
+        if reference.step == 1 {
+            if let Some(cost) = window_cost_interior(image, reference, u, v, truncation) {
+                return Some(cost);
+            }
+        }
+        Some(window_cost_clamped(image, reference, u, v, truncation))
+    }
+
+    /// The interior window of one point, or `None` where its texel patch leaves the image.
+    fn window_cost_interior(
+        image: &ColourImage,
+        reference: &ReferenceWindow,
+        u: f32,
+        v: f32,
+        truncation: f32,
+    ) -> Option<f32> {
+        match reference.radius {
+            1 => window_cost_interior_fixed::<1, 3, 4>(image, reference, u, v, truncation),
+            2 => window_cost_interior_fixed::<2, 5, 6>(image, reference, u, v, truncation),
+            _ => None,
+        }
+    }
+
+    fn window_cost_interior_fixed<const R: usize, const SIDE: usize, const TEXELS: usize>(
+        image: &ColourImage,
+        reference: &ReferenceWindow,
+        u: f32,
+        v: f32,
+        truncation: f32,
+    ) -> Option<f32> {
+        let (w, h) = (image.width(), image.height());
+        // u, v >= 0 here, so truncation is floor (and avoids a libm call without SSE4.1).
+        let (cx, cy) = (u as usize, v as usize);
+        if cx < R || cy < R || cx + R + 1 >= w || cy + R + 1 >= h {
+            return None;
+        }
+        let (fx, fy) = (u - cx as f32, v - cy as f32);
+        Some(window_cost_at::<SIDE, TEXELS>(image, reference, (cy - R) * w + (cx - R), fx, fy, truncation))
     }
 
     fn uniform_image(value: [f32; 3]) -> ColourImage {
@@ -659,10 +661,17 @@ mod tests {
             MatchImage { offset: 0.0, image: &good, projection: &p, is_reference_now: false },
             MatchImage { offset: 0.0, image: &bad, projection: &p, is_reference_now: false },
         ];
-        let pos = [0.0, 0.0, 2.0];
-        assert_eq!(robust_window_cost(&images, &reference, pos, [0.0; 3], 1.0, 2), 0.0);
+        // One particle at (0, 0, 2), at rest, in the first lane.
+        let cost = |keep: usize| {
+            let (mut position, velocity) = ([[0.0; COST_LANES]; 3], [[0.0; COST_LANES]; 3]);
+            position[2][0] = 2.0;
+            let mut out = [f32::NAN; COST_LANES];
+            robust_window_costs(&images, &reference, &position, &velocity, 1, 1.0, keep, &mut out);
+            out[0]
+        };
+        assert_eq!(cost(2), 0.0);
         // Keeping all three: the bad view costs the truncation on every channel.
-        let all = robust_window_cost(&images, &reference, pos, [0.0; 3], 1.0, 3);
+        let all = cost(3);
         assert!((all - 1.0 / 3.0).abs() < 1e-6, "{all}");
     }
 }
