@@ -145,7 +145,7 @@ fn a_face_of_known_size_is_found_as_well_on_binned_pixels() {
         let full = detector.detect(image, w, h);
         let Some(face) = full.iter().max_by(|a, b| a.score.total_cmp(&b.score)).copied() else { continue };
         let bin = detection_bin(face.width);
-        assert!(bin >= 2, "frame {frame}: a {} px face is searched on binned pixels", face.width);
+        assert!(bin >= 2.0, "frame {frame}: a {} px face is searched on binned pixels", face.width);
         let region = Region::around(&face, handflow_flow::skin::adapt::SEARCH_SCALE, w, h);
         let binned = detector.detect_in_binned(image, w, h, region, 0, bin);
         let same = binned.iter().find(|f| f.contains(face.x + 0.5 * face.width, face.y + 0.5 * face.height));

@@ -146,7 +146,7 @@ impl SkinAdapter {
         let absent = |k: usize| k < 32 && missing & (1 << k) != 0;
         // Where each view is searched, decided from the last round; then the searches run in
         // parallel (on the caller's thread pool), each camera with its own detector.
-        let searches: Vec<Option<(Region, u32)>> = self
+        let searches: Vec<Option<(Region, f32)>> = self
             .cameras
             .iter()
             .zip(&self.last)
