@@ -5,7 +5,8 @@
 //! file format (the per-camera tables written by anipose and Pose2Sim).
 //! [`messages`] are the zero-copy message types the stages exchange and [`ipc`] the
 //! services they travel on (names, settings per delivery mode, ports); [`wire`] is the same
-//! messages as bytes for networks.
+//! messages as bytes for networks. [`isa`] runs the services' hot loops with AVX2 where the
+//! CPU has it, to the same bits.
 //!
 //! Conventions (see DESIGN.md, "Coordinates and units"): the world frame is
 //! right-handed in metres, `x_cam = R x_world + t`, and pixels are `K` applied
@@ -14,6 +15,7 @@
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
 pub mod ipc;
+pub mod isa;
 pub mod messages;
 pub mod records;
 pub mod rig;

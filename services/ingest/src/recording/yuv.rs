@@ -14,15 +14,20 @@ pub enum ColourMatrix {
     Bt2020,
 }
 
-/// One YCbCr -> RGB conversion as lookup tables of fixed-point (16 fractional bits) terms:
-/// per pixel three additions, three shifts and three clamps.
-#[derive(Clone, Debug, PartialEq, Eq)]
+/// One YCbCr -> RGB conversion as fixed-point (16 fractional bits) coefficients: per pixel
+/// four integer multiply-adds, three shifts and three clamps, sixteen pixels at a time in
+/// SIMD lanes (lookup tables, one load per term, cost twice as much: they cannot be
+/// vectorised).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Conversion {
-    /// Luma's contribution (offset and gain, plus the rounding half).
-    y: [i32; 256],
-    r_from_v: [i32; 256],
-    g_from_uv: [[i32; 256]; 2],
-    b_from_u: [i32; 256],
+    /// Luma's offset and gain.
+    y_offset: i32,
+    y_gain: i32,
+    /// Chroma gains: R from Cr, G from Cb and from Cr, B from Cb.
+    rv: i32,
+    gu: i32,
+    gv: i32,
+    bu: i32,
 }
 
 const ONE: f64 = 65536.0;
@@ -39,47 +44,67 @@ impl Conversion {
         let kg = 1.0 - kr - kb;
         let (y_offset, y_gain, c_gain) = if full_range { (0, 1.0, 1.0) } else { (16, 255.0 / 219.0, 255.0 / 224.0) };
         let fixed = |x: f64| (x * ONE).round() as i32;
-        let (y_gain, rv, gu, gv, bu) = (
-            fixed(y_gain),
-            fixed(2.0 * (1.0 - kr) * c_gain),
-            fixed(-2.0 * kb * (1.0 - kb) / kg * c_gain),
-            fixed(-2.0 * kr * (1.0 - kr) / kg * c_gain),
-            fixed(2.0 * (1.0 - kb) * c_gain),
-        );
-        let table = |f: &dyn Fn(i32) -> i32| -> [i32; 256] { std::array::from_fn(|i| f(i as i32)) };
         Conversion {
-            y: table(&|y| (y - y_offset) * y_gain + (1 << 15)),
-            r_from_v: table(&|v| rv * (v - 128)),
-            g_from_uv: [table(&|u| gu * (u - 128)), table(&|v| gv * (v - 128))],
-            b_from_u: table(&|u| bu * (u - 128)),
+            y_offset,
+            y_gain: fixed(y_gain),
+            rv: fixed(2.0 * (1.0 - kr) * c_gain),
+            gu: fixed(-2.0 * kb * (1.0 - kb) / kg * c_gain),
+            gv: fixed(-2.0 * kr * (1.0 - kr) / kg * c_gain),
+            bu: fixed(2.0 * (1.0 - kb) * c_gain),
         }
     }
 
-    /// The three chroma terms of one chroma sample.
+    /// One pixel. No term overflows: at most 255 x 2^17 each.
     #[inline(always)]
-    fn chroma(&self, u: u8, v: u8) -> [i32; 3] {
-        [
-            self.r_from_v[usize::from(v)],
-            self.g_from_uv[0][usize::from(u)] + self.g_from_uv[1][usize::from(v)],
-            self.b_from_u[usize::from(u)],
-        ]
-    }
-
-    #[inline(always)]
-    fn pixel(&self, y: u8, chroma: [i32; 3], out: &mut [u8]) {
-        let y = self.y[usize::from(y)];
-        let clamp = |x: i32| (x >> 16).clamp(0, 255) as u8;
-        out[0] = clamp(y + chroma[0]);
-        out[1] = clamp(y + chroma[1]);
-        out[2] = clamp(y + chroma[2]);
-    }
-
-    #[cfg(test)]
     fn rgb(&self, y: u8, u: u8, v: u8) -> [u8; 3] {
-        let mut out = [0u8; 3];
-        self.pixel(y, self.chroma(u, v), &mut out);
-        out
+        let y = (i32::from(y) - self.y_offset) * self.y_gain + (1 << 15);
+        let (u, v) = (i32::from(u) - 128, i32::from(v) - 128);
+        let clamp = |x: i32| (x >> 16).clamp(0, 255) as u8;
+        [clamp(y + self.rv * v), clamp(y + (self.gu * u + self.gv * v)), clamp(y + self.bu * u)]
     }
+}
+
+/// Pixels converted together, one per SIMD lane.
+const BLOCK: usize = 16;
+
+handflow_protocol::vectorised_fn! {
+    /// One row into interleaved RGB8, chroma shared by `1 << chroma_shift` pixels across
+    /// (0 or 1; the caller checked): whole blocks of [`BLOCK`] pixels computed in lanes and
+    /// then interleaved, then the row's tail pixel by pixel, with the same arithmetic.
+    fn convert_row(c: &Conversion, chroma_shift: u32, y_row: &[u8], u_row: &[u8], v_row: &[u8], out: &mut [u8]) {
+        let done = match chroma_shift {
+            0 => convert_blocks::<0>(c, y_row, u_row, v_row, out),
+            _ => convert_blocks::<1>(c, y_row, u_row, v_row, out),
+        };
+        for (x, pixel) in out.chunks_exact_mut(3).enumerate().skip(done) {
+            let k = x >> chroma_shift;
+            pixel.copy_from_slice(&c.rgb(y_row[x], u_row[k], v_row[k]));
+        }
+    }
+}
+
+/// The whole blocks of [`convert_row`]; returns the pixels done. The chroma shift is a
+/// constant so each lane's chroma index is too.
+#[inline(always)]
+fn convert_blocks<const SHIFT: u32>(c: &Conversion, y_row: &[u8], u_row: &[u8], v_row: &[u8], out: &mut [u8]) -> usize {
+    let blocks = y_row.len() / BLOCK;
+    let chroma = BLOCK >> SHIFT;
+    for b in 0..blocks {
+        let ys = &y_row[b * BLOCK..(b + 1) * BLOCK];
+        let (us, vs) = (&u_row[b * chroma..(b + 1) * chroma], &v_row[b * chroma..(b + 1) * chroma]);
+        let mut planar = [[0u8; BLOCK]; 3];
+        for i in 0..BLOCK {
+            let [r, g, bl] = c.rgb(ys[i], us[i >> SHIFT], vs[i >> SHIFT]);
+            (planar[0][i], planar[1][i], planar[2][i]) = (r, g, bl);
+        }
+        let o = &mut out[3 * b * BLOCK..3 * (b + 1) * BLOCK];
+        for i in 0..BLOCK {
+            o[3 * i] = planar[0][i];
+            o[3 * i + 1] = planar[1][i];
+            o[3 * i + 2] = planar[2][i];
+        }
+    }
+    blocks * BLOCK
 }
 
 /// Three planes (Y, Cb, Cr) with their row strides; chroma is subsampled by `1 <<
@@ -116,20 +141,16 @@ pub fn planar_to_rgb(
     {
         return Err("the decoded planes are smaller than the frame".into());
     }
-    // Each chroma sample's terms are computed once for the `1 << sx` pixels it covers.
-    let run = 1usize << sx;
+    if sx > 1 {
+        return Err(format!("chroma subsampled by {} across: only 1 and 2 are known", 1 << sx));
+    }
     for (row, out) in dst.chunks_exact_mut(width * 3).enumerate() {
         let y_row = &y_plane[row * y_stride..row * y_stride + width];
         let c = (row >> sy) * u_stride;
         let u_row = &u_plane[c..c + chroma_width];
         let c = (row >> sy) * v_stride;
         let v_row = &v_plane[c..c + chroma_width];
-        for (((pixels, ys), &u), &v) in out.chunks_mut(3 * run).zip(y_row.chunks(run)).zip(u_row).zip(v_row) {
-            let chroma = conversion.chroma(u, v);
-            for (pixel, &y) in pixels.chunks_exact_mut(3).zip(ys) {
-                conversion.pixel(y, chroma, pixel);
-            }
-        }
+        convert_row(conversion, sx, y_row, u_row, v_row, out);
     }
     Ok(())
 }
@@ -179,6 +200,45 @@ mod tests {
         assert!(dst[6] > 100 && dst[8] < 60, "the third pixel takes the second (red) chroma sample: {:?}", &dst[6..9]);
         let mut short = vec![0u8; 5];
         assert!(planar_to_rgb(&planes, 3, 2, &Conversion::new(ColourMatrix::Bt601, false), &mut short).is_err());
+    }
+
+    #[test]
+    fn blocks_and_row_tails_convert_as_each_pixel_alone() {
+        // Pseudo-random planes, widths with and without a tail after the whole blocks.
+        let mut state = 0x9e37_79b9u32;
+        let mut byte = move || {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            (state >> 24) as u8
+        };
+        for (width, shift) in [(16usize, 1u32), (37, 1), (50, 0), (7, 1), (33, 0)] {
+            let height = 3;
+            let cw = (width + (1 << shift) - 1) >> shift;
+            let y: Vec<u8> = (0..width * height).map(|_| byte()).collect();
+            let u: Vec<u8> = (0..cw * height).map(|_| byte()).collect();
+            let v: Vec<u8> = (0..cw * height).map(|_| byte()).collect();
+            let planes = Planes { planes: [(&y, width), (&u, cw), (&v, cw)], chroma_shift: (shift, 0) };
+            for (matrix, full) in [(ColourMatrix::Bt601, false), (ColourMatrix::Bt709, true)] {
+                let c = Conversion::new(matrix, full);
+                let mut dst = vec![0u8; width * height * 3];
+                planar_to_rgb(&planes, width, height, &c, &mut dst).unwrap();
+                for (i, px) in dst.chunks_exact(3).enumerate() {
+                    let (row, x) = (i / width, i % width);
+                    let k = row * cw + (x >> shift);
+                    assert_eq!(px, c.rgb(y[i], u[k], v[k]), "width {width}, pixel {i}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn chroma_subsampled_more_than_twice_across_is_refused() {
+        let (y, u, v) = ([0u8; 8], [128u8; 2], [128u8; 2]);
+        let planes = Planes { planes: [(&y, 8), (&u, 2), (&v, 2)], chroma_shift: (2, 0) };
+        let mut dst = vec![0u8; 8 * 3];
+        let e = planar_to_rgb(&planes, 8, 1, &Conversion::new(ColourMatrix::Bt601, false), &mut dst).unwrap_err();
+        assert!(e.contains("chroma"), "{e}");
     }
 
     #[test]
