@@ -83,7 +83,7 @@ impl ColourImage {
         }
         let table = normalisation_table(width, height, rgb);
         let cw = width.div_ceil(2);
-        sized_for_overwrite(scratch, cw * height);
+        let scratch = sized_for_overwrite(scratch, cw * height);
         scratch
             .par_chunks_mut(cw)
             .zip(rgb.par_chunks(width * 3))
@@ -149,17 +149,22 @@ impl ColourImage {
         use rayon::prelude::*;
         let (w, h) = (self.width, self.height);
         let cw = w.div_ceil(2).max(1);
-        sized_for_overwrite(scratch, cw * h);
+        let scratch = sized_for_overwrite(scratch, cw * h);
         scratch.par_chunks_mut(cw).zip(self.pixels.par_chunks(w.max(1))).for_each(|(out, row)| half_row(out, row));
         vertical_half(scratch, cw, h, dst);
     }
 }
 
-/// Gives a scratch buffer `len` texels that the caller writes in full before reading: the
-/// texels kept from the last frame are not zeroed first (zeroing a frame set's scratch
-/// buffers wrote about 50 MB per frame set, 3 % of a replay's CPU time).
-fn sized_for_overwrite(scratch: &mut Vec<Rgba>, len: usize) {
-    scratch.resize(len, [0.0; 4]);
+/// The first `len` texels of a scratch buffer, which the caller writes in full before
+/// reading them: the buffer grows when too short but never shrinks, and what it holds from
+/// earlier passes is not zeroed first. One buffer serves passes of several sizes per frame;
+/// zeroing it as it was resized wrote about 50 MB per frame set, 3 to 5 % of a replay's CPU
+/// time.
+fn sized_for_overwrite(scratch: &mut Vec<Rgba>, len: usize) -> &mut [Rgba] {
+    if scratch.len() < len {
+        scratch.resize(len, [0.0; 4]);
+    }
+    &mut scratch[..len]
 }
 
 /// Taps of the [1 3 3 1]/8 filter that halves an image.
@@ -387,7 +392,7 @@ impl ColourImage {
         }
         // Horizontal box sums of value and squared value (pad lane holds the squared sum),
         // rows in parallel.
-        sized_for_overwrite(scratch, w * h);
+        let scratch = sized_for_overwrite(scratch, w * h);
         let r = params.radius as isize;
         scratch.par_chunks_mut(w).zip(self.pixels.par_chunks(w)).for_each(|(out, row)| box_sum_row(out, row, r));
         // Vertical sums row by row into the output row itself (contiguous, no buffer), then
