@@ -5,9 +5,9 @@
 //! AVX2 (x86-64-v3, every x86-64 CPU since about 2015) saves a register copy per operation
 //! (three-operand forms) and holds two texels per register: measured on `signer-3cam`, the
 //! engine runs 1.2 to 1.3x faster with these functions compiled for it, as fast as a whole
-//! binary built for x86-64-v3 (BENCHMARKS.md); video frames convert to RGB 2x faster.
-//! [`vectorised_fn`](crate::vectorised_fn) defines functions compiled
-//! for AVX2 and FMA when the CPU has them, and baseline code otherwise.
+//! binary built for x86-64-v3 (BENCHMARKS.md); the decoder converts video frames to RGB 2.4x
+//! faster. [`vectorised_fn`](crate::vectorised_fn) defines functions compiled for AVX2 and
+//! FMA when the CPU has them, and baseline code otherwise.
 
 /// Defines a function whose body is compiled twice, for baseline x86-64 and for AVX2 with
 /// FMA, and which runs the second when the CPU has both (a cached check per call, so put it
@@ -41,6 +41,7 @@ macro_rules! vectorised_fn {
         }
     };
 }
+
 /// Whether the CPU has AVX2 and FMA (detected once by std, then a cached load).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
