@@ -1250,37 +1250,22 @@ struct SkinTerm<'a> {
 }
 
 impl SkinTerm<'_> {
-    /// `weight * sum over the other views of their clamped log ratio at the point's pixel`.
-    /// The reference view is left out: it sees the same pixel for every hypothesis of a
-    /// ray, so it cannot change their relative weights. Views the point falls outside of
-    /// say nothing.
+    /// `weight * sum over the other views of their clamped log ratio at the point's pixel`
+    /// ([`SkinTerm::log_weights`] of one point, in every lane; the paper's variant weighs
+    /// its particles one at a time).
     #[inline(always)]
     fn log_weight(&self, pos: [f32; 3]) -> f32 {
-        let (mut h, mut worst, mut seen) = (0.0, f32::INFINITY, 0);
-        for (q, ((map, proj), cam)) in self.maps.iter().zip(self.projections).zip(self.cameras).enumerate() {
-            if q == self.reference {
-                continue;
-            }
-            let Some([u, v]) = proj.project(pos) else { continue };
-            // Nearest pixel: for u, v > -0.5 truncating u + 0.5 rounds (and, unlike
-            // `round`, needs no libm call without SSE4.1).
-            let (x, y) = (u + 0.5, v + 0.5);
-            if x > 0.0 && y > 0.0 && x < cam.width as f32 && y < cam.height as f32 {
-                // A camera without a view this frame has an empty map and no say.
-                let Some(&hq) = map.get(y as usize * cam.width as usize + x as usize) else { continue };
-                h += hq;
-                worst = worst.min(hq);
-                seen += 1;
-            }
-        }
-        if self.drop_worst && seen >= 2 {
-            h -= worst;
-        }
-        self.weight * h
+        let lanes = pos.map(|axis| [axis; COST_LANES]);
+        let mut out = [0f32; COST_LANES];
+        self.log_weights(&lanes, &mut out);
+        out[0]
     }
 
-    /// [`SkinTerm::log_weight`] of up to [`COST_LANES`] points, their projections across SIMD
-    /// lanes; each lane's sum runs over the views in `log_weight`'s order, so its bits too.
+    /// The skin term of up to [`COST_LANES`] points (`pos[axis][lane]`), their projections
+    /// across SIMD lanes: `weight * sum over the other views of their clamped log ratio at the
+    /// point's pixel`. The reference view is left out: it sees the same pixel for every
+    /// hypothesis of a ray, so it cannot change their relative weights. Views a point falls
+    /// outside of say nothing.
     #[inline(always)]
     fn log_weights(&self, pos: &[[f32; COST_LANES]; 3], out: &mut [f32; COST_LANES]) {
         let (mut h, mut worst, mut seen) = ([0f32; COST_LANES], [f32::INFINITY; COST_LANES], [0u32; COST_LANES]);
@@ -1292,8 +1277,11 @@ impl SkinTerm<'_> {
             let in_front = proj.project_lanes(pos, &mut u, &mut v);
             let (width, height) = (cam.width as f32, cam.height as f32);
             for l in 0..COST_LANES {
+                // Nearest pixel: for u, v > -0.5 truncating u + 0.5 rounds (and, unlike
+                // `round`, needs no libm call without SSE4.1).
                 let (x, y) = (u[l] + 0.5, v[l] + 0.5);
                 if in_front[l] && x > 0.0 && y > 0.0 && x < width && y < height {
+                    // A camera without a view this frame has an empty map and no say.
                     let Some(&hq) = map.get(y as usize * cam.width as usize + x as usize) else { continue };
                     h[l] += hq;
                     worst[l] = worst[l].min(hq);
@@ -1968,6 +1956,28 @@ mod tests {
         assert_eq!(term.log_weight([0.0, 0.0, -3.0]), 0.0);
     }
 
+    /// The skin term of one point, view by view: the oracle the lanes are checked against.
+    fn skin_term_one_point_at_a_time(term: &SkinTerm<'_>, pos: [f32; 3]) -> f32 {
+        let (mut h, mut worst, mut seen) = (0.0, f32::INFINITY, 0);
+        for (q, ((map, proj), cam)) in term.maps.iter().zip(term.projections).zip(term.cameras).enumerate() {
+            if q == term.reference {
+                continue;
+            }
+            let Some([u, v]) = proj.project(pos) else { continue };
+            let (x, y) = (u + 0.5, v + 0.5);
+            if x > 0.0 && y > 0.0 && x < cam.width as f32 && y < cam.height as f32 {
+                let Some(&hq) = map.get(y as usize * cam.width as usize + x as usize) else { continue };
+                h += hq;
+                worst = worst.min(hq);
+                seen += 1;
+            }
+        }
+        if term.drop_worst && seen >= 2 {
+            h -= worst;
+        }
+        term.weight * h
+    }
+
     #[test]
     fn the_skin_term_of_a_batch_is_each_points_to_the_bit() {
         let cameras = vec![camera("ref", 0.0), camera("a", 0.2), camera("b", -0.2)];
@@ -1999,7 +2009,9 @@ mod tests {
             let mut out = [0f32; COST_LANES];
             term.log_weights(&lanes, &mut out);
             for (l, p) in points.iter().enumerate() {
-                assert_eq!(out[l].to_bits(), term.log_weight(*p).to_bits(), "lane {l}, drop_worst {drop_worst}");
+                let want = skin_term_one_point_at_a_time(&term, *p);
+                assert_eq!(out[l].to_bits(), want.to_bits(), "lane {l}, drop_worst {drop_worst}");
+                assert_eq!(term.log_weight(*p).to_bits(), want.to_bits(), "one point, drop_worst {drop_worst}");
             }
             assert!(out[0] != out[1] && out[6] == 0.0, "{out:?}");
         }
