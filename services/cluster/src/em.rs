@@ -1,7 +1,7 @@
 //! Expectation maximisation of a Gaussian mixture with full covariances in the 6D space of
 //! position and scaled velocity (section 4.2), on weighted points.
 
-use nalgebra::{Cholesky, Matrix6, Vector3, Vector6};
+use nalgebra::{Cholesky, Matrix3, Matrix6, Vector3, Vector6};
 
 use crate::WeightedPoint;
 
@@ -63,19 +63,56 @@ impl Default for EmConfig {
 /// position-velocity blocks scaled with them (`T C T` with `T` acting on positions only, so
 /// the result stays positive semi-definite).
 fn bounded_position_spread(cov: &Matrix6<f64>, max_std: f64) -> Matrix6<f64> {
-    let position: nalgebra::Matrix3<f64> = cov.fixed_view::<3, 3>(0, 0).into_owned();
-    let eigen = nalgebra::SymmetricEigen::new(position);
+    let position: Matrix3<f64> = cov.fixed_view::<3, 3>(0, 0).into_owned();
+    let (eigenvalues, eigenvectors) = symmetric_eigen3(&position);
     let limit = max_std * max_std;
-    if eigen.eigenvalues.iter().all(|&l| l <= limit) {
+    if eigenvalues.iter().all(|&l| l <= limit) {
         return *cov;
     }
-    let shrink =
-        nalgebra::Matrix3::from_diagonal(&eigen.eigenvalues.map(|l| if l > limit { (limit / l).sqrt() } else { 1.0 }));
-    let t3 = eigen.eigenvectors * shrink * eigen.eigenvectors.transpose();
+    let shrink = Matrix3::from_diagonal(&eigenvalues.map(|l| if l > limit { (limit / l).sqrt() } else { 1.0 }));
+    let t3 = eigenvectors * shrink * eigenvectors.transpose();
     let mut t = Matrix6::identity();
     t.fixed_view_mut::<3, 3>(0, 0).copy_from(&t3);
     let bounded = t * cov * t;
     0.5 * (bounded + bounded.transpose())
+}
+
+/// Eigenvalues and eigenvectors (columns) of a symmetric 3x3 matrix by cyclic Jacobi
+/// rotations, accurate to rounding: `V diag(λ) Vᵀ` gives `m` back within a few ulps of its
+/// norm. nalgebra's `SymmetricEigen` solves the last 2x2 block in closed form, whose
+/// eigenvector loses digits when two eigenvalues nearly coincide (a residual of 1e-8 of the
+/// norm was seen), and the spread bound needs its eigenvectors orthogonal to `m`'s.
+fn symmetric_eigen3(m: &Matrix3<f64>) -> (Vector3<f64>, Matrix3<f64>) {
+    let mut a = *m;
+    let mut v = Matrix3::identity();
+    let scale = a.norm();
+    for _sweep in 0..32 {
+        let off = a[(0, 1)].powi(2) + a[(0, 2)].powi(2) + a[(1, 2)].powi(2);
+        if off <= (f64::EPSILON * 1e-3 * scale).powi(2) {
+            break;
+        }
+        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
+            let apq = a[(p, q)];
+            if apq == 0.0 {
+                continue;
+            }
+            // The smaller of the two rotation angles that zero `a[(p, q)]` (Rutishauser).
+            let theta = (a[(q, q)] - a[(p, p)]) / (2.0 * apq);
+            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+            let c = 1.0 / (t * t + 1.0).sqrt();
+            let s = t * c;
+            let mut rotation = Matrix3::identity();
+            rotation[(p, p)] = c;
+            rotation[(q, q)] = c;
+            rotation[(p, q)] = s;
+            rotation[(q, p)] = -s;
+            a = rotation.transpose() * a * rotation;
+            a[(p, q)] = 0.0;
+            a[(q, p)] = 0.0;
+            v *= rotation;
+        }
+    }
+    (a.diagonal(), v)
 }
 
 /// One fitted component, in the caller's units.
@@ -750,13 +787,37 @@ mod tests {
             let cov = a * a.transpose() + Matrix6::identity() * 1e-4;
             let bounded = bounded_position_spread(&cov, max_std);
             proptest::prop_assert!((bounded - bounded.transpose()).norm() < 1e-12);
-            proptest::prop_assert!(bounded.symmetric_eigen().eigenvalues.iter().all(|&e| e > -1e-12));
-            let position: nalgebra::Matrix3<f64> = bounded.fixed_view::<3, 3>(0, 0).into_owned();
+            // Positive definite, and no positional spread above the limit: `limit I - P` is
+            // positive semi-definite. Cholesky decides both to rounding, where an eigensolver
+            // near coinciding eigenvalues need not.
+            proptest::prop_assert!(Cholesky::new(bounded).is_some());
+            let position: Matrix3<f64> = bounded.fixed_view::<3, 3>(0, 0).into_owned();
             let limit = max_std * max_std;
-            proptest::prop_assert!(position.symmetric_eigen().eigenvalues.iter().all(|&e| e <= limit * (1.0 + 1e-9)));
+            proptest::prop_assert!(Cholesky::new(Matrix3::identity() * limit * (1.0 + 1e-9) - position).is_some());
             // Velocities keep their spread.
-            let velocity: nalgebra::Matrix3<f64> = bounded.fixed_view::<3, 3>(3, 3).into_owned();
+            let velocity: Matrix3<f64> = bounded.fixed_view::<3, 3>(3, 3).into_owned();
             proptest::prop_assert!((velocity - cov.fixed_view::<3, 3>(3, 3)).norm() < 1e-12);
+        }
+
+        #[test]
+        fn jacobi_eigenvectors_give_the_matrix_back_to_rounding(
+            entries in proptest::collection::vec(-0.5f64..0.5, 9),
+            nearly_equal in proptest::bool::ANY,
+        ) {
+            let a = Matrix3::from_iterator(entries);
+            let mut m = a * a.transpose();
+            if nearly_equal {
+                // Two eigenvalues 1e-9 of the norm apart: where a closed-form 2x2 step loses digits.
+                let (values, vectors) = symmetric_eigen3(&m);
+                let close = Vector3::new(values[0], values[0] * (1.0 + 1e-9), values[2]);
+                m = vectors * Matrix3::from_diagonal(&close) * vectors.transpose();
+                m = 0.5 * (m + m.transpose());
+            }
+            let (values, vectors) = symmetric_eigen3(&m);
+            let scale = m.norm().max(1e-300);
+            proptest::prop_assert!((vectors * vectors.transpose() - Matrix3::identity()).norm() < 1e-14);
+            let back = vectors * Matrix3::from_diagonal(&values) * vectors.transpose();
+            proptest::prop_assert!((back - m).norm() <= 1e-14 * scale, "residual {:e}", (back - m).norm() / scale);
         }
 
         #[test]
@@ -789,7 +850,7 @@ mod tests {
         let init = [(Vector3::new(0.0, 1.6, 0.0), Vector3::zeros()), (Vector3::new(-0.3, 1.1, 0.3), Vector3::zeros())];
         let config = EmConfig { first_max_std, ..EmConfig::default() };
         let head = fit_mixture(&pts, &init, &config).unwrap().components[0];
-        let position: nalgebra::Matrix3<f64> = head.covariance.fixed_view::<3, 3>(0, 0).into_owned();
+        let position: Matrix3<f64> = head.covariance.fixed_view::<3, 3>(0, 0).into_owned();
         position.symmetric_eigen().eigenvalues.max().sqrt()
     }
 
