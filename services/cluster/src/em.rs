@@ -81,7 +81,7 @@ fn bounded_position_spread(cov: &Matrix6<f64>, max_std: f64) -> Matrix6<f64> {
 /// rotations, accurate to rounding: `V diag(λ) Vᵀ` gives `m` back within a few ulps of its
 /// norm. nalgebra's `SymmetricEigen` solves the last 2x2 block in closed form, whose
 /// eigenvector loses digits when two eigenvalues nearly coincide (a residual of 1e-8 of the
-/// norm was seen), and the spread bound needs its eigenvectors orthogonal to `m`'s.
+/// norm was seen), and the spread bound is only as tight as its eigenvectors diagonalise `m`.
 fn symmetric_eigen3(m: &Matrix3<f64>) -> (Vector3<f64>, Matrix3<f64>) {
     let mut a = *m;
     let mut v = Matrix3::identity();
@@ -807,7 +807,7 @@ mod tests {
             let a = Matrix3::from_iterator(entries);
             let mut m = a * a.transpose();
             if nearly_equal {
-                // Two eigenvalues 1e-9 of the norm apart: where a closed-form 2x2 step loses digits.
+                // Two eigenvalues 1e-9 (relative) apart: where a closed-form 2x2 step loses digits.
                 let (values, vectors) = symmetric_eigen3(&m);
                 let close = Vector3::new(values[0], values[0] * (1.0 + 1e-9), values[2]);
                 m = vectors * Matrix3::from_diagonal(&close) * vectors.transpose();
@@ -853,7 +853,7 @@ mod tests {
         let config = EmConfig { first_max_std, ..EmConfig::default() };
         let head = fit_mixture(&pts, &init, &config).unwrap().components[0];
         let position: Matrix3<f64> = head.covariance.fixed_view::<3, 3>(0, 0).into_owned();
-        position.symmetric_eigen().eigenvalues.max().sqrt()
+        symmetric_eigen3(&position).0.max().sqrt()
     }
 
     #[test]
