@@ -19,7 +19,7 @@ use crate::engine::neighbour_costs::{same_hypothesis, NeighbourCosts};
 use crate::engine::particles::{ray_resample, Particle, SearchSpace};
 use crate::engine::refine::{weighted_median_refine, RayEstimate};
 use crate::engine::rng::RayRng;
-use crate::matching::camera::LevelProjection;
+use crate::matching::camera::{window_quarter_turns, LevelProjection};
 use crate::matching::image::{LocalNormalisation, Pyramid};
 use crate::matching::likelihood::{
     robust_window_costs, variance_likelihood, MatchImage, ReferenceWindow, COST_LANES, MAX_IMAGES,
@@ -121,6 +121,9 @@ pub struct SceneFlowEngine {
     reference: usize,
     /// `projections[level][camera]`.
     projections: Vec<Vec<LevelProjection>>,
+    /// Per camera, the quarter turns of its image relative to the reference's: the matching
+    /// windows turn with it.
+    window_turns: Vec<u8>,
     /// Ray grids per level (`paper` uses only level 0's: its rays are full-resolution pixels).
     grids: Vec<RayGrid>,
     origin: [f32; 3],
@@ -242,6 +245,18 @@ impl SceneFlowEngine {
         };
         let levels = config.pyramid_levels;
         let projections = (0..levels).map(|l| cameras.iter().map(|c| LevelProjection::new(c, l)).collect()).collect();
+        // Turns are judged where the scene is expected: mid-way (geometrically) through the
+        // depth range.
+        let typical_depth = f64::from(config.depth_range.0 * config.depth_range.1).sqrt();
+        let window_turns: Vec<u8> = cameras.iter().map(|c| window_quarter_turns(ref_cam, c, typical_depth)).collect();
+        for (camera, &turns) in cameras.iter().zip(&window_turns).filter(|(_, &t)| t != 0) {
+            tracing::debug!(
+                "camera `{}` is turned by {} quarter turn(s) relative to the reference `{}`: its matching windows turn with it",
+                camera.name,
+                turns,
+                ref_cam.name
+            );
+        }
         let grid_levels = if config.per_level_rays { levels } else { 1 };
         // Rays finer than the finest ray level are never cast: their grids keep only their
         // sizes (a 1280x720 camera's full-resolution grid would cost a quarter of a second
@@ -279,6 +294,7 @@ impl SceneFlowEngine {
             cameras,
             reference,
             projections,
+            window_turns,
             grids,
             origin,
             optical_axis,
@@ -965,6 +981,7 @@ impl SceneFlowEngine {
             image: self.ring[first_slot][0].matching_level(level),
             projection: &self.projections[level][0],
             is_reference_now: false,
+            window_turns: 0,
         };
         let mut images = [placeholder; MAX_IMAGES];
         let mut n_images = 0;
@@ -982,6 +999,7 @@ impl SceneFlowEngine {
                     image: pyr.matching_level(level),
                     projection: &self.projections[level][q],
                     is_reference_now: k == window.centre && q == self.reference,
+                    window_turns: self.window_turns[q],
                 };
                 n_images += 1;
             }

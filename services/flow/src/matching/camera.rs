@@ -22,6 +22,46 @@ pub struct LevelProjection {
     matrix: [[f32; 4]; 3],
 }
 
+/// Quarter turns (0..=3, clockwise on the image) that take a step along the `reference`
+/// camera's image axes to the nearest step along `view`'s, for a surface facing the
+/// reference at `depth` on its optical axis: 0 for cameras mounted alike, 1 or 3 where one
+/// of them is mounted sideways, 2 upside down. The matching windows compare the
+/// reference's pixels with the view's sample by sample, so on a view turned relative to
+/// the reference the window must be turned too, or a textured patch matches best beside
+/// its true position (a sideways reference on upright side views put every hand 2-3 cm
+/// too deep). The turn is the rotation part of the local map between the two images (the
+/// image axes alone mislead between cameras far apart: foreshortening shears them).
+pub fn window_quarter_turns(reference: &Camera, view: &Camera, depth: f64) -> u8 {
+    let k = reference.matrix;
+    let (fx, fy, skew, cx, cy) = (k[(0, 0)], k[(1, 1)], k[(0, 1)], k[(0, 2)], k[(1, 2)]);
+    let back = |u: f64, v: f64| {
+        let y = (v - cy) / fy;
+        let x = (u - cx - skew * y) / fx;
+        reference.rotation.inverse() * (nalgebra::Vector3::new(x, y, 1.0) * depth - reference.translation)
+    };
+    let project = |p: nalgebra::Vector3<f64>| {
+        let c = view.rotation * p + view.translation;
+        (c.z > 0.0).then(|| {
+            let q = view.matrix * (c / c.z);
+            nalgebra::Vector2::new(q.x, q.y)
+        })
+    };
+    let (Some(centre), Some(right), Some(down)) =
+        (project(back(cx, cy)), project(back(cx + 1.0, cy)), project(back(cx, cy + 1.0)))
+    else {
+        // The view does not see the reference's axis there: the plain window.
+        return 0;
+    };
+    let (a, b) = (right - centre, down - centre);
+    // The rotation nearest the map [a b]: its angle is atan2(a.y - b.x, a.x + b.y).
+    let angle = (a.y - b.x).atan2(a.x + b.y);
+    if !angle.is_finite() {
+        return 0;
+    }
+    // Image y points down, so a positive angle turns clockwise on the image.
+    ((angle / std::f64::consts::FRAC_PI_2).round() as i64).rem_euclid(4) as u8
+}
+
 /// Points closer to a camera than this (camera-frame z) do not project.
 const MIN_Z: f32 = 1e-6;
 
@@ -227,5 +267,39 @@ mod tests {
         let fast = LevelProjection::new(&cam, 0);
         let behind = cam.camera_to_world(&Point3::new(0.0, 0.0, -1.0));
         assert!(fast.project([behind.x as f32, behind.y as f32, behind.z as f32]).is_none());
+    }
+
+    /// A 640x480 camera 2 m from the origin, looking at it from `yaw` radians about the
+    /// world's y axis, rolled by `roll` about its own optical axis.
+    fn looking_at_the_origin(yaw: f64, roll: f64) -> Camera {
+        let rotation =
+            Rotation3::from_axis_angle(&Vector3::z_axis(), roll) * Rotation3::from_axis_angle(&Vector3::y_axis(), -yaw);
+        let k = Matrix3::new(500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0);
+        Camera::new("c", 640, 480, k, Distortion::default(), rotation, Vector3::new(0.0, 0.0, 2.0)).expect("valid")
+    }
+
+    #[test]
+    fn window_turns_follow_the_roll_between_cameras_not_their_baseline() {
+        use std::f64::consts::FRAC_PI_2;
+        let turns = |reference: (f64, f64), view: (f64, f64)| {
+            let r = looking_at_the_origin(reference.0, reference.1);
+            window_quarter_turns(&r, &looking_at_the_origin(view.0, view.1), 2.0)
+        };
+        // Side views of an upright rig, near and far apart: no turn.
+        for yaw in [-1.1, -0.6, 0.0, 0.6, 1.1] {
+            assert_eq!(turns((0.0, 0.0), (yaw, 0.0)), 0, "yaw {yaw}");
+        }
+        // A view mounted sideways (clockwise on its image: the reference's x axis runs
+        // down it) or upside down, seen from in front or from the side.
+        for yaw in [0.0, 0.6, -1.1] {
+            assert_eq!(turns((0.0, 0.0), (yaw, FRAC_PI_2)), 1, "yaw {yaw}");
+            assert_eq!(turns((0.0, 0.0), (yaw, -FRAC_PI_2)), 3, "yaw {yaw}");
+            assert_eq!(turns((0.0, 0.0), (yaw, 2.0 * FRAC_PI_2)), 2, "yaw {yaw}");
+        }
+        // The nearest quarter turn, and only the difference of the two rolls counts.
+        assert_eq!(turns((0.0, 0.0), (0.6, 0.5)), 0);
+        assert_eq!(turns((0.0, 0.0), (0.6, 1.1)), 1);
+        assert_eq!(turns((0.0, FRAC_PI_2), (0.6, FRAC_PI_2)), 0);
+        assert_eq!(turns((0.0, FRAC_PI_2), (0.6, 0.0)), 3);
     }
 }

@@ -24,6 +24,10 @@ pub struct MatchImage<'a> {
     pub projection: &'a LevelProjection,
     /// True for the reference camera at frame t, whose pixel defines the ray.
     pub is_reference_now: bool,
+    /// Quarter turns of this camera's image relative to the reference's
+    /// ([`crate::matching::camera::window_quarter_turns`]): the windows compared on it are
+    /// the reference window turned by as much.
+    pub window_turns: u8,
 }
 
 /// Equation 3 (with two frames) or 6 (with three): `1 / sqrt(var^2 + eps^2)` where `var` is
@@ -134,6 +138,31 @@ impl ReferenceWindow {
         }
         w
     }
+
+    /// The window as an image turned by `quarter_turns` clockwise quarter turns sees it:
+    /// sample `(dx, dy)` of the result is the reference's sample at the offset that turns
+    /// onto `(dx, dy)`. Zero turns give the window itself.
+    pub fn turned(&self, quarter_turns: u8) -> ReferenceWindow {
+        let mut out = ReferenceWindow { colours: self.colours, ..*self };
+        let r = self.radius as isize;
+        let side = 2 * r + 1;
+        if quarter_turns.is_multiple_of(4) || self.len != (side * side) as usize {
+            return out;
+        }
+        for dy in -r..=r {
+            for dx in -r..=r {
+                // Clockwise on the image (y down): (x, y) -> (-y, x) per quarter turn, so the
+                // source is the target turned back.
+                let (sx, sy) = match quarter_turns % 4 {
+                    1 => (dy, -dx),
+                    2 => (-dx, -dy),
+                    _ => (-dy, dx),
+                };
+                out.colours[((dy + r) * side + dx + r) as usize] = self.colours[((sy + r) * side + sx + r) as usize];
+            }
+        }
+        out
+    }
 }
 
 /// Candidates [`robust_window_costs`] takes at once: eight `f32` lanes fill an AVX2 register.
@@ -144,7 +173,8 @@ pub const COST_LANES: usize = 8;
 /// `out[..count]`; lower is better. Per particle: for every image other than the reference
 /// at t, the truncated L1 colour difference between the reference window and the window
 /// around the particle's projection (the window translated, not warped: at the scale of a
-/// few pixels the local warp between views is close to a translation), averaged over
+/// few pixels the local warp between views is close to a translation, once a view mounted
+/// a quarter turn from the reference has its window turned, [`MatchImage::window_turns`]), averaged over
 /// samples and channels. Only the best `keep` images are averaged, so views where the point
 /// is occluded do not spoil it. Images the point falls outside of do not vote at all:
 /// counting them as mismatches would bias every ray near the border towards hypotheses
@@ -176,10 +206,21 @@ pub fn robust_window_costs(
     let mut n = [0usize; COST_LANES];
     let norm = 1.0 / (reference.len as f32 * 3.0);
     let (mut present, mut seen) = (0u8, [0u8; COST_LANES]);
+    let mut turned = None;
     for img in images {
         if img.is_reference_now {
             continue;
         }
+        // A view turned relative to the reference (a camera mounted sideways) is compared
+        // with the window turned as much, built once for consecutive views of that turn.
+        let reference = if img.window_turns == 0 {
+            reference
+        } else {
+            if turned.as_ref().map(|(turns, _)| *turns) != Some(img.window_turns) {
+                turned = Some((img.window_turns, reference.turned(img.window_turns)));
+            }
+            turned.as_ref().map_or(reference, |(_, window)| window)
+        };
         let bit = 1u8 << ((img.offset as i32 + 1).clamp(0, 2) as u32);
         present |= bit;
         let k = img.offset;
@@ -514,9 +555,9 @@ mod tests {
         let c = uniform_image([2.0, 1.0, 0.0]);
         let (pa, pb, pc) = (camera_at(0.0), camera_at(0.1), camera_at(-0.1));
         let images = [
-            MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true },
-            MatchImage { offset: -1.0, image: &b, projection: &pb, is_reference_now: false },
-            MatchImage { offset: 0.0, image: &c, projection: &pc, is_reference_now: false },
+            MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true, window_turns: 0 },
+            MatchImage { offset: -1.0, image: &b, projection: &pb, is_reference_now: false, window_turns: 0 },
+            MatchImage { offset: 0.0, image: &c, projection: &pc, is_reference_now: false, window_turns: 0 },
         ];
         // Mean (1, 1/3, 0); squared deviations: (1 + 1/9) + (0 + 1/9) + (1 + 4/9) = 8/3;
         // variance = 8/9. Likelihood = 1 / sqrt((8/9)^2 + 0.001^2).
@@ -536,7 +577,7 @@ mod tests {
     fn points_outside_every_other_view_get_no_evidence() {
         let a = uniform_image([0.0, 0.0, 0.0]);
         let pa = camera_at(0.0);
-        let images = [MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true }];
+        let images = [MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true, window_turns: 0 }];
         let got = variance_likelihood(&images, None, [0.0, 0.0, 2.0], [0.0; 3], 0.001);
         assert!((got - 1.0 / 3.0).abs() < 1e-4);
     }
@@ -590,12 +631,12 @@ mod tests {
         let pb = wide(0.2, Distortion { k1: -0.1, k2: 0.01, p1: 0.002, p2: -0.001, k3: 0.0 });
         let pc = wide(-0.2, Distortion::default());
         let images = [
-            MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true },
-            MatchImage { offset: -1.0, image: &b, projection: &pa, is_reference_now: false },
-            MatchImage { offset: 1.0, image: &c, projection: &pa, is_reference_now: false },
-            MatchImage { offset: -1.0, image: &d, projection: &pb, is_reference_now: false },
-            MatchImage { offset: 0.0, image: &b, projection: &pb, is_reference_now: false },
-            MatchImage { offset: 1.0, image: &a, projection: &pc, is_reference_now: false },
+            MatchImage { offset: 0.0, image: &a, projection: &pa, is_reference_now: true, window_turns: 0 },
+            MatchImage { offset: -1.0, image: &b, projection: &pa, is_reference_now: false, window_turns: 0 },
+            MatchImage { offset: 1.0, image: &c, projection: &pa, is_reference_now: false, window_turns: 0 },
+            MatchImage { offset: -1.0, image: &d, projection: &pb, is_reference_now: false, window_turns: 0 },
+            MatchImage { offset: 0.0, image: &b, projection: &pb, is_reference_now: false, window_turns: 0 },
+            MatchImage { offset: 1.0, image: &a, projection: &pc, is_reference_now: false, window_turns: 0 },
         ];
         let reference = ReferenceWindow::gather(&a, 7, 8, 1, 1);
         // Points inside every view, near a border, outside one frame, behind the cameras.
@@ -656,10 +697,10 @@ mod tests {
         let p = camera_at(0.0);
         let reference = ReferenceWindow::gather(&good, 1, 1, 1, 1);
         let images = [
-            MatchImage { offset: 0.0, image: &good, projection: &p, is_reference_now: true },
-            MatchImage { offset: -1.0, image: &good, projection: &p, is_reference_now: false },
-            MatchImage { offset: 0.0, image: &good, projection: &p, is_reference_now: false },
-            MatchImage { offset: 0.0, image: &bad, projection: &p, is_reference_now: false },
+            MatchImage { offset: 0.0, image: &good, projection: &p, is_reference_now: true, window_turns: 0 },
+            MatchImage { offset: -1.0, image: &good, projection: &p, is_reference_now: false, window_turns: 0 },
+            MatchImage { offset: 0.0, image: &good, projection: &p, is_reference_now: false, window_turns: 0 },
+            MatchImage { offset: 0.0, image: &bad, projection: &p, is_reference_now: false, window_turns: 0 },
         ];
         // One particle at (0, 0, 2), at rest, in the first lane.
         let cost = |keep: usize| {
@@ -673,5 +714,60 @@ mod tests {
         // Keeping all three: the bad view costs the truncation on every channel.
         let all = cost(3);
         assert!((all - 1.0 / 3.0).abs() < 1e-6, "{all}");
+    }
+
+    #[test]
+    fn a_view_turned_by_a_quarter_matches_the_reference_only_with_the_window_turned() {
+        // The reference and a view from the same centre, the view rolled by a quarter turn
+        // about the optical axis: its image is the reference's turned (pixel (u, v) of
+        // the reference lands on (2c - v, u) of the view).
+        let (n, f, c) = (21usize, 20.0, 10.0);
+        let k = Matrix3::new(f, 0.0, c, 0.0, f, c, 0.0, 0.0, 1.0);
+        let camera =
+            |rotation| Camera::new("c", n as u32, n as u32, k, Distortion::default(), rotation, Vector3::zeros());
+        let reference_camera = camera(Rotation3::identity()).expect("valid");
+        let view_camera =
+            camera(Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_2)).expect("valid");
+        let texture = |u: usize, v: usize| {
+            let h = (u * 7919 + v * 104_729 + 13).wrapping_mul(2_654_435_761) % 1000;
+            [h as f32 / 1000.0, ((h * 31) % 1000) as f32 / 1000.0, ((h * 17) % 1000) as f32 / 1000.0, 0.0]
+        };
+        let (mut reference_image, mut view_image) = (ColourImage::new(n, n), ColourImage::new(n, n));
+        for v in 0..n {
+            for u in 0..n {
+                reference_image.pixels_mut()[v * n + u] = texture(u, v);
+                view_image.pixels_mut()[v * n + u] = texture(v, 2 * c as usize - u);
+            }
+        }
+        let (x, y, depth) = (8usize, 12usize, 1.0f32);
+        let point = [(x as f32 - c as f32) / f as f32 * depth, (y as f32 - c as f32) / f as f32 * depth, depth];
+        let turns = crate::matching::camera::window_quarter_turns(&reference_camera, &view_camera, 1.0);
+        assert_eq!(turns, 1);
+        let (pr, pv) = (LevelProjection::new(&reference_camera, 0), LevelProjection::new(&view_camera, 0));
+        let window = ReferenceWindow::gather(&reference_image, x, y, 1, 1);
+        let cost = |window_turns: u8| {
+            let images = [
+                MatchImage {
+                    offset: 0.0,
+                    image: &reference_image,
+                    projection: &pr,
+                    is_reference_now: true,
+                    window_turns: 0,
+                },
+                MatchImage { offset: 0.0, image: &view_image, projection: &pv, is_reference_now: false, window_turns },
+            ];
+            let position = [[point[0]; COST_LANES], [point[1]; COST_LANES], [point[2]; COST_LANES]];
+            let mut out = [0f32; COST_LANES];
+            robust_window_costs(&images, &window, &position, &[[0.0; COST_LANES]; 3], 1, 1.0, 1, &mut out);
+            out[0]
+        };
+        assert!(cost(turns) < 1e-3, "turned window: {}", cost(turns));
+        assert!(cost(0) > 0.05, "window as in the reference: {}", cost(0));
+        // Four quarter turns are none; a turn and its inverse undo each other.
+        let colours = |w: &ReferenceWindow| w.colours[..w.len].to_vec();
+        assert_eq!(colours(&window.turned(4)), colours(&window));
+        assert_eq!(colours(&window.turned(1).turned(3)), colours(&window));
+        assert_eq!(colours(&window.turned(2).turned(2)), colours(&window));
+        assert_ne!(colours(&window.turned(1)), colours(&window));
     }
 }
