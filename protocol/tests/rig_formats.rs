@@ -225,6 +225,67 @@ fn up_is_estimated_from_all_cameras_in_a_y_up_world() {
 }
 
 #[test]
+fn unrecorded_mounts_are_inferred_from_the_geometry() {
+    for (up, forward) in [(Vector3::y(), -Vector3::z()), (Vector3::z(), Vector3::y()), (-Vector3::y(), Vector3::z())] {
+        for turns in 1..4 {
+            let what = format!("up {up:?}, {turns} turn(s)");
+            let mut rig = arc_rig(up, forward, turns, false);
+            rig.infer_mounts();
+            let mounts: Vec<u8> = rig.cameras.iter().map(|c| c.mount_quarter_turns).collect();
+            assert_eq!(mounts, vec![0, 0, turns], "{what}");
+            assert!(rig.cameras[2].image_up().dot(&up) > 0.9, "{what}");
+            assert_eq!(rig.notes.len(), 1, "{what}: {:?}", rig.notes);
+            assert!(rig.notes[0].contains("cam_2"), "{what}: {:?}", rig.notes);
+            assert_estimated(&rig, up, &what);
+            // Recorded, or inferred once already: nothing changes.
+            let mut again = arc_rig(up, forward, turns, true);
+            again.infer_mounts();
+            assert!(again.notes.is_empty(), "{what}: {:?}", again.notes);
+            assert_eq!(again.cameras[2].mount_quarter_turns, turns, "{what}");
+        }
+    }
+    // A mount the file records is the user's word: kept even where the geometry disagrees.
+    let mut rig = arc_rig(Vector3::y(), -Vector3::z(), 0, true);
+    rig.cameras[1] = rig.cameras[1].clone().with_mount_quarter_turns(2);
+    rig.infer_mounts();
+    assert_eq!(rig.cameras[1].mount_quarter_turns, 2, "{:?}", rig.notes);
+}
+
+#[test]
+fn mounts_are_left_alone_without_a_clear_up() {
+    let up = Vector3::y();
+    // Two of three cameras sideways without saying so: the estimated up is theirs to
+    // outvote, so no camera is changed...
+    let mut rig = arc_rig(up, -Vector3::z(), 1, false);
+    rig.cameras[0] = camera("cam_0", Vector3::new(-1.4, 0.4, -2.1), Vector3::zeros(), up, 1, false);
+    let before: Vec<u8> = rig.cameras.iter().map(|c| c.mount_quarter_turns).collect();
+    rig.infer_mounts();
+    assert_eq!(rig.cameras.iter().map(|c| c.mount_quarter_turns).collect::<Vec<_>>(), before);
+    // ...until the user says where up is.
+    rig.set_up(up).expect("valid up");
+    assert_eq!(rig.cameras.iter().map(|c| c.mount_quarter_turns).collect::<Vec<_>>(), vec![1, 0, 1]);
+    // A camera looking straight down has no up in its frames: its mount stays as written.
+    let overhead = camera("top", Vector3::new(0.0, 3.0, 0.0), Vector3::zeros(), Vector3::z(), 1, true);
+    let mut rig = arc_rig(up, -Vector3::z(), 0, true);
+    rig.cameras.push(overhead);
+    rig.infer_mounts();
+    assert_eq!(rig.cameras[3].mount_quarter_turns, 1);
+    assert!(rig.notes.is_empty(), "{:?}", rig.notes);
+}
+
+#[test]
+fn a_calibration_without_mounts_gets_them_when_loaded() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("rig.toml");
+    let unrecorded = arc_rig(Vector3::y(), -Vector3::z(), 3, false);
+    std::fs::write(&path, unrecorded.to_toml_string()).expect("write");
+    assert!(!std::fs::read_to_string(&path).expect("read").contains("mount_quarter_turns"));
+    let rig = Rig::load(&path).expect("loads");
+    assert_eq!(rig.cameras[2].mount_quarter_turns, 3);
+    assert!(rig.notes.iter().any(|n| n.contains("cam_2")), "{:?}", rig.notes);
+}
+
+#[test]
 fn up_is_estimated_in_a_z_up_motion_capture_world() {
     assert_estimated(&arc_rig(Vector3::z(), Vector3::y(), 0, true), Vector3::z(), "Z up");
     assert_estimated(&arc_rig(Vector3::z(), Vector3::y(), 1, true), Vector3::z(), "Z up, one sideways");

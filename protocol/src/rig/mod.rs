@@ -130,8 +130,10 @@ impl Rig {
             error,
         })?;
         let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        Rig::from_str_detect(&text, &stem)
-            .map_err(|error| RigError::InFile { path: path.to_owned(), error: Box::new(error) })
+        let (mut rig, format) = Rig::from_str_detect(&text, &stem)
+            .map_err(|error| RigError::InFile { path: path.to_owned(), error: Box::new(error) })?;
+        rig.infer_mounts();
+        Ok((rig, format))
     }
 
     /// Reads a calibration file in any supported format: the anipose / Pose2Sim TOML,
@@ -166,6 +168,8 @@ impl Rig {
         if rig.cameras.is_empty() {
             return Err(RigError::NoCameras);
         }
+        // Each file's cameras were judged alone; together they may outvote differently.
+        rig.infer_mounts();
         Ok(rig)
     }
 
@@ -263,9 +267,26 @@ impl Rig {
 
     /// Sets the world's up as configured by the user (normalised); it travels with
     /// [`Rig::to_toml_string`]. Errors on a zero or non-finite vector.
+    /// The cameras' mounts are then judged again under that up ([`Rig::infer_mounts`]).
     pub fn set_up(&mut self, direction: nalgebra::Vector3<f64>) -> Result<(), RigError> {
         self.declared_up = Some(WorldUp::declared(direction, UpSource::Configured)?);
+        self.infer_mounts();
         Ok(())
+    }
+
+    /// Sets each camera's [`Camera::mount_quarter_turns`] from the geometry where the file
+    /// did not record one (most formats cannot: Pose2Sim's, anipose's, OpenCV's; a recorded
+    /// mount is kept): the quarter turns that bring the world's up to the top of its frames. The
+    /// face detector finds upright faces only, so a sideways camera whose mount is unknown
+    /// sees no face. Judged only when most cameras agree with the world's up as they are
+    /// (always with a declared up); a camera looking along the up, or rolled by about 45
+    /// degrees, keeps its mount. Each change is logged and kept in [`Rig::notes`].
+    pub fn infer_mounts(&mut self) {
+        let up = self.world_up();
+        for note in up::infer_mounts(&mut self.cameras, &up) {
+            tracing::info!("{note}");
+            self.notes.push(note);
+        }
     }
 
     /// The camera called `name`, if any.

@@ -10,6 +10,15 @@ use super::{Camera, RigError};
 /// each, so an estimate this close is the axis plus mounting noise.
 pub const SNAP_TO_AXIS_DEG: f64 = 10.0;
 
+/// A camera whose optical axis lies within this angle of the world's up (or down) looks
+/// along it: its frames have no up to infer a mount from, degrees.
+const ALONG_UP_DEG: f64 = 20.0;
+
+/// Largest angle between the world's up, as a camera's image shows it, and the nearest
+/// quarter-turn direction for [`upright_turns`] to name that turn, degrees: beyond it (a
+/// camera rolled by about 45 degrees) no turn is clearly the one.
+const MOUNT_TOLERANCE_DEG: f64 = 35.0;
+
 /// Weiszfeld iterations for the geometric median: each one at least halves the distance
 /// to the median for realistic rigs; 100 is far more than a rig of a few cameras needs.
 const MEDIAN_ITERATIONS: usize = 100;
@@ -139,4 +148,45 @@ pub(crate) fn estimate(cameras: &[Camera]) -> WorldUp {
             },
         }
     }
+}
+
+/// The clockwise quarter turns that make `camera`'s raw frames upright in a world whose up
+/// is `up` (unit): the turn whose upright image up ([`Camera::image_up`]) lies closest to
+/// it. `None` where the frames show no up (the camera looks along it, within
+/// [`ALONG_UP_DEG`]) or no turn is clearly closest ([`MOUNT_TOLERANCE_DEG`]).
+pub(crate) fn upright_turns(camera: &Camera, up: &Vector3<f64>) -> Option<u8> {
+    let in_camera = camera.rotation * up;
+    let across = in_camera.x.hypot(in_camera.y);
+    if across < ALONG_UP_DEG.to_radians().sin() {
+        return None;
+    }
+    let (x, y) = (in_camera.x / across, in_camera.y / across);
+    // The raw image direction that is up once the frames are turned (as `image_up`).
+    let (turns, alignment) = [(0u8, -y), (1, -x), (2, y), (3, x)].into_iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
+    (alignment >= MOUNT_TOLERANCE_DEG.to_radians().cos()).then_some(turns)
+}
+
+/// Mount turns from the geometry: each camera's [`upright_turns`] under the world's up
+/// (declared, or estimated from the cameras as they are mounted now), for cameras whose
+/// mount is not recorded (zero). With an estimated up, only when most cameras already
+/// agree with it, so an up estimated from cameras mounted sideways without saying so
+/// corrects none of them. Returns a note per camera changed.
+pub(crate) fn infer_mounts(cameras: &mut [Camera], up: &WorldUp) -> Vec<String> {
+    let turns: Vec<Option<u8>> = cameras.iter().map(|c| upright_turns(c, &up.direction)).collect();
+    let agreeing = cameras.iter().zip(&turns).filter(|(c, t)| **t == Some(c.mount_quarter_turns)).count();
+    if matches!(up.source, UpSource::Estimated { .. }) && 2 * agreeing <= cameras.len() {
+        return Vec::new();
+    }
+    let mut notes = Vec::new();
+    for (camera, turns) in cameras.iter_mut().zip(turns) {
+        // A mount the file records is the user's word; only unrecorded (zero) ones are set.
+        let Some(turns) = turns.filter(|&t| t != 0 && camera.mount_quarter_turns == 0) else { continue };
+        notes.push(format!(
+            "camera `{}`: mounted {turns} clockwise quarter turn(s) from upright, by its calibration and the \
+             world's up (the file records no mount); its frames are turned that much for face detection",
+            camera.name
+        ));
+        camera.mount_quarter_turns = turns;
+    }
+    notes
 }
