@@ -32,22 +32,13 @@ pub struct LevelProjection {
 /// too deep). The turn is the rotation part of the local map between the two images (the
 /// image axes alone mislead between cameras far apart: foreshortening shears them).
 pub fn window_quarter_turns(reference: &Camera, view: &Camera, depth: f64) -> u8 {
-    let k = reference.matrix;
-    let (fx, fy, skew, cx, cy) = (k[(0, 0)], k[(1, 1)], k[(0, 1)], k[(0, 2)], k[(1, 2)]);
     let back = |u: f64, v: f64| {
-        let y = (v - cy) / fy;
-        let x = (u - cx - skew * y) / fx;
-        reference.rotation.inverse() * (nalgebra::Vector3::new(x, y, 1.0) * depth - reference.translation)
+        let n = reference.pixel_to_normalised(&nalgebra::Point2::new(u, v));
+        reference.camera_to_world(&nalgebra::Point3::new(n.x * depth, n.y * depth, depth))
     };
-    let project = |p: nalgebra::Vector3<f64>| {
-        let c = view.rotation * p + view.translation;
-        (c.z > 0.0).then(|| {
-            let q = view.matrix * (c / c.z);
-            nalgebra::Vector2::new(q.x, q.y)
-        })
-    };
-    let (Some(centre), Some(right), Some(down)) =
-        (project(back(cx, cy)), project(back(cx + 1.0, cy)), project(back(cx, cy + 1.0)))
+    let (cx, cy) = (reference.matrix[(0, 2)], reference.matrix[(1, 2)]);
+    let project = |u: f64, v: f64| view.project(&back(u, v));
+    let (Some(centre), Some(right), Some(down)) = (project(cx, cy), project(cx + 1.0, cy), project(cx, cy + 1.0))
     else {
         // The view does not see the reference's axis there: the plain window.
         return 0;

@@ -143,7 +143,7 @@ impl ReferenceWindow {
     /// sample `(dx, dy)` of the result is the reference's sample at the offset that turns
     /// onto `(dx, dy)`. Zero turns give the window itself.
     pub fn turned(&self, quarter_turns: u8) -> ReferenceWindow {
-        let mut out = ReferenceWindow { colours: self.colours, ..*self };
+        let mut out = ReferenceWindow { ..*self };
         let r = self.radius as isize;
         let side = 2 * r + 1;
         if quarter_turns.is_multiple_of(4) || self.len != (side * side) as usize {
