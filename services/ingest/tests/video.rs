@@ -385,3 +385,76 @@ fn every_codec_and_container_people_record_in_decodes_to_its_frames() {
         }
     }
 }
+
+/// Camera 0's frames, lossless, in an mp4 whose orientation tag says to show them turned a
+/// quarter (as a phone stores portrait video); ffmpeg's own decoding of it, turned as
+/// players show it.
+fn tagged_quarter_turn(dir: &Path) -> Vec<u8> {
+    let stored = dir.join("stored.mp4");
+    encode(0, &stored, &LOSSLESS_MP4);
+    let video = dir.join("cam_0.mp4");
+    let status = Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-y", "-i"])
+        .arg(&stored)
+        .args(["-c", "copy", "-metadata:s:v:0", "rotate=90"])
+        .arg(&video)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    std::fs::remove_file(&stored).unwrap();
+    let shown = Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-i"])
+        .arg(&video)
+        .args(["-f", "rawvideo", "-pix_fmt", "rgb24", "-"])
+        .output()
+        .unwrap();
+    assert!(shown.status.success());
+    shown.stdout
+}
+
+#[test]
+fn a_video_tagged_to_be_shown_turned_is_read_as_players_show_it_unless_calibrated_as_stored() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let shown_by_ffmpeg = tagged_quarter_turn(dir.path());
+    let frame_len = (W * H * 3) as usize;
+    assert_eq!(shown_by_ffmpeg.len(), FRAMES as usize * frame_len);
+
+    // Calibrated on the frames as shown (what OpenCV-based calibration tools read): H x W.
+    rig(&["cam_0"], H, W).save(dir.path().join("rig.toml")).unwrap();
+    let rec = Recording::open(dir.path()).unwrap();
+    assert_eq!((rec.rig().cameras[0].width, rec.rig().cameras[0].height), (H, W));
+    assert!(
+        rec.notes().iter().any(|n| n.contains("cam_0") && n.contains("turned as players show them")),
+        "{:?}",
+        rec.notes()
+    );
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    for f in 0..FRAMES as usize {
+        rec.read_frame_into(f as u64, false, &mut buf).unwrap();
+        assert_eq!(buf, shown_by_ffmpeg[f * frame_len..][..frame_len], "frame {f} differs from ffmpeg's");
+        // The tag (`rotate=90` as ffmpeg writes it) shows the stored right edge on top.
+        assert_eq!(buf, image::imageops::rotate270(&pixels(0, f as u32)).into_raw(), "frame {f}");
+    }
+
+    // Calibrated on the stored frames: read as stored, and said so.
+    rig(&["cam_0"], W, H).save(dir.path().join("rig.toml")).unwrap();
+    let rec = Recording::open(dir.path()).unwrap();
+    assert_eq!((rec.rig().cameras[0].width, rec.rig().cameras[0].height), (W, H));
+    assert!(rec.notes().iter().any(|n| n.contains("read as stored")), "{:?}", rec.notes());
+    rec.read_frame_into(2, false, &mut buf).unwrap();
+    assert_eq!(buf, pixels(0, 2).into_raw());
+
+    // Neither: refused, naming the camera, both sizes and the tag.
+    rig(&["cam_0"], 2 * W, 2 * H).save(dir.path().join("rig.toml")).unwrap();
+    let e = Recording::open(dir.path()).unwrap_err().to_string();
+    assert!(
+        e.contains("cam_0")
+            && e.contains(&format!("{H}x{W}"))
+            && e.contains(&format!("stored {W}x{H}"))
+            && e.contains("tagged"),
+        "{e}"
+    );
+}

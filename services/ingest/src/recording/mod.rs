@@ -43,7 +43,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-use handflow_protocol::{Rig, RigError};
+use handflow_protocol::{Camera, Rig, RigError};
 use rayon::prelude::*;
 
 use crate::{camera_match, decode_rgb8_into, IngestError};
@@ -58,7 +58,7 @@ pub use timing::{
     read_caliscope_timestamps, read_frame_table, SyncedSet, CALISCOPE_FRAME_HISTORY_FILE, CALISCOPE_TIMESTAMPS_FILE,
     FRAMES_FILE,
 };
-use video::{VideoError, VideoProbe, VideoReader};
+use video::{FrameTurn, VideoError, VideoProbe, VideoReader};
 
 /// The calibration of the image-folder layout.
 pub const RIG_FILE: &str = "rig.toml";
@@ -765,25 +765,13 @@ fn open_videos(
         })
         .collect();
     let probes = leave_out_unreadable_cameras(&mut rig, &mut paths, probed, notes)?;
+    let mut turns = Vec::with_capacity(probes.len());
     for (camera, (probe, path)) in rig.cameras.iter_mut().zip(probes.iter().zip(&paths)) {
-        let (w, h) = (probe.width, probe.height);
+        let turn = frame_turn(camera, probe, path, notes)?;
+        turns.push(turn);
+        let (w, h) = probe.frame_size(turn);
         if (w, h) == (camera.width, camera.height) {
             continue;
-        }
-        let padded = (camera.width.saturating_sub(MAX_PADDING_PX)..=camera.width).contains(&w)
-            && (camera.height.saturating_sub(MAX_PADDING_PX)..=camera.height).contains(&h);
-        if !padded {
-            return Err(RecordingError::Video {
-                camera: camera.name.clone(),
-                frame: None,
-                error: VideoError::Open {
-                    path: path.clone(),
-                    problem: format!(
-                        "frames are {w}x{h}, the calibration says {}x{} (only up to {MAX_PADDING_PX} px of encoder                          padding is accepted)",
-                        camera.width, camera.height
-                    ),
-                },
-            });
         }
         notes.push(format!(
             "camera `{}`: video `{}` is {w}x{h}, the calibration {}x{}: taken as encoder padding, intrinsics unchanged",
@@ -845,10 +833,10 @@ fn open_videos(
     }
     let readers = paths
         .iter()
-        .zip(&probes)
+        .zip(probes.iter().zip(&turns))
         .zip(&rig.cameras)
-        .map(|((path, probe), camera)| {
-            VideoReader::open(path, probe).map(Mutex::new).map_err(|error| RecordingError::Video {
+        .map(|((path, (probe, &turn)), camera)| {
+            VideoReader::open(path, probe, turn).map(Mutex::new).map_err(|error| RecordingError::Video {
                 camera: camera.name.clone(),
                 frame: None,
                 error,
@@ -857,6 +845,64 @@ fn open_videos(
         .collect::<Result<_, _>>()?;
     let codecs = probes.iter().map(|p| p.codec.clone()).collect();
     Ok((rig, frames, Pixels::Videos { readers, positions, codecs }))
+}
+
+/// Whether frames of `width` x `height` are those `camera` was calibrated on: the same size,
+/// or up to [`MAX_PADDING_PX`] smaller in each side (encoders pad sizes to multiples of 16).
+fn fits_calibration(camera: &Camera, width: u32, height: u32) -> bool {
+    (camera.width.saturating_sub(MAX_PADDING_PX)..=camera.width).contains(&width)
+        && (camera.height.saturating_sub(MAX_PADDING_PX)..=camera.height).contains(&height)
+}
+
+/// Whether `camera`'s video is read as players show it or as stored. Shown, as the
+/// calibration tools' readers (OpenCV, ffmpeg) turn a video by its orientation tag by
+/// default, unless only the stored frames fit the calibration (a tool that read them
+/// unturned); either choice of a tagged video is a note. Frames of neither size are an
+/// error naming both.
+fn frame_turn(
+    camera: &Camera,
+    probe: &VideoProbe,
+    path: &Path,
+    notes: &mut Vec<String>,
+) -> Result<FrameTurn, RecordingError> {
+    let (sw, sh) = probe.frame_size(FrameTurn::AsShown);
+    let (w, h) = (probe.width, probe.height);
+    let tag = probe.orientation.tag.as_deref();
+    let file = images::file_name(path);
+    let turn = if fits_calibration(camera, sw, sh) {
+        FrameTurn::AsShown
+    } else if tag.is_some() && fits_calibration(camera, w, h) {
+        FrameTurn::AsStored
+    } else {
+        let tagged = tag.map_or_else(String::new, |t| format!(" (stored {w}x{h}, tagged `{t}`)"));
+        return Err(RecordingError::Video {
+            camera: camera.name.clone(),
+            frame: None,
+            error: VideoError::Open {
+                path: path.to_owned(),
+                problem: format!(
+                    "frames are {sw}x{sh}{tagged}, the calibration says {}x{} (only up to {MAX_PADDING_PX} px of \
+                     encoder padding is accepted)",
+                    camera.width, camera.height
+                ),
+            },
+        });
+    };
+    if let Some(tag) = tag {
+        notes.push(match turn {
+            FrameTurn::AsShown => format!(
+                "camera `{}`: video `{file}` is stored {w}x{h} and tagged `{tag}`: its frames are turned as players \
+                 show them, {sw}x{sh}",
+                camera.name
+            ),
+            FrameTurn::AsStored => format!(
+                "camera `{}`: video `{file}` is tagged `{tag}`, but its calibration is of the stored {w}x{h} frames: \
+                 they are read as stored",
+                camera.name
+            ),
+        });
+    }
+    Ok(turn)
 }
 
 /// The fewest cameras a recording is replayed with: depth needs a second view.

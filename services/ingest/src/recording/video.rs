@@ -10,6 +10,12 @@
 //! straight into the caller's buffer (the loaned shared-memory sample): no RGB image in
 //! between.
 //!
+//! Frames are shown as players show them: a video tagged to be turned for display (a phone's
+//! portrait video is stored landscape with an orientation tag) is turned by GStreamer's
+//! `videoflip` as `ffmpeg` and OpenCV, the calibration tools' readers, turn it by default
+//! ([`Orientation`]); the recording keeps the stored frames only when its calibration is of
+//! their size.
+//!
 //! Frames are identified by their presentation time, not by counting decoder output: a probe
 //! pass over the demuxed packets (no decoding) lists every frame's time, so a frame the
 //! decoder drops (a corrupt packet) is reported as that frame, and the next one still lands
@@ -64,17 +70,63 @@ pub enum VideoError {
     },
 }
 
+/// How a video's container says its frames are to be turned for display: GStreamer's
+/// `image-orientation` tag (`rotate-90` is a quarter turn clockwise; `flip-` mirrors first).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Orientation {
+    /// The tag, `None` when the video has none or says `rotate-0`.
+    pub tag: Option<String>,
+}
+
+impl Orientation {
+    /// From the tag's value: upright for `rotate-0`.
+    pub fn from_tag(tag: &str) -> Orientation {
+        Orientation { tag: (tag != "rotate-0").then(|| tag.to_string()) }
+    }
+
+    /// Whether the frames are shown as stored.
+    pub fn is_upright(&self) -> bool {
+        self.tag.is_none()
+    }
+
+    /// Whether showing the frames swaps their width and height (a quarter turn).
+    pub fn swaps_sides(&self) -> bool {
+        self.tag.as_deref().is_some_and(|t| t.ends_with("-90") || t.ends_with("-270"))
+    }
+}
+
+/// Which frames a reader delivers: as shown by players, or as stored in the file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameTurn {
+    /// Turned as the video's [`Orientation`] tag says (no turn without one).
+    AsShown,
+    /// As stored, whatever the tag says.
+    AsStored,
+}
+
 /// What a probe learned of a video without decoding it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct VideoProbe {
-    /// Decoded width, pixels.
+    /// Width of the stored frames, pixels.
     pub width: u32,
-    /// Decoded height, pixels.
+    /// Height of the stored frames, pixels.
     pub height: u32,
+    /// How the frames are to be turned for display.
+    pub orientation: Orientation,
     /// Presentation time of every frame, seconds, increasing.
     pub frame_times: Vec<f64>,
     /// The codec as GStreamer names its caps (`video/x-h264`, `image/jpeg`, ...).
     pub codec: String,
+}
+
+impl VideoProbe {
+    /// Width and height of the frames `turn` delivers.
+    pub fn frame_size(&self, turn: FrameTurn) -> (u32, u32) {
+        match turn {
+            FrameTurn::AsShown if self.orientation.swaps_sides() => (self.height, self.width),
+            _ => (self.width, self.height),
+        }
+    }
 }
 
 /// Starts GStreamer once per process and makes sure no hardware decoder is autoplugged.
@@ -227,6 +279,21 @@ pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
     let sink = gst_app::AppSink::builder().sync(false).max_buffers(64).build();
     pipeline.add(&sink).map_err(|e| open_error(e.to_string()))?;
     source_into(&pipeline, path, "parsebin", sink.upcast_ref())?;
+    // The demuxer sends the container's tags downstream ahead of the first packet.
+    let orientation_tag = std::sync::Arc::new(Mutex::new(None::<String>));
+    if let Some(pad) = sink.static_pad("sink") {
+        let found = orientation_tag.clone();
+        pad.add_probe(gst::PadProbeType::EVENT_DOWNSTREAM, move |_, info| {
+            if let Some(gst::EventView::Tag(tag)) = info.event().map(|e| e.view()) {
+                if let Some(value) = tag.tag().get::<gst::tags::ImageOrientation>() {
+                    if let Ok(mut slot) = found.lock() {
+                        *slot = Some(value.get().to_string());
+                    }
+                }
+            }
+            gst::PadProbeReturn::Ok
+        });
+    }
     let stop = |pipeline: &gst::Pipeline| {
         let _ = pipeline.set_state(gst::State::Null);
     };
@@ -306,9 +373,11 @@ pub fn probe(path: &Path) -> Result<VideoProbe, VideoError> {
         .and_then(|s| Some((s.get::<i32>("width").ok()?, s.get::<i32>("height").ok()?)))
         .filter(|&(w, h)| w > 0 && h > 0)
         .ok_or_else(|| open_error("the stream does not say its frame size".into()))?;
+    let orientation = orientation_tag.lock().ok().and_then(|t| t.clone()).map(|t| Orientation::from_tag(&t));
     Ok(VideoProbe {
         width: width as u32,
         height: height as u32,
+        orientation: orientation.unwrap_or_default(),
         frame_times: times.iter().map(|t| t.nseconds() as f64 * 1e-9).collect(),
         codec,
     })
@@ -338,8 +407,8 @@ impl std::fmt::Debug for VideoReader {
 }
 
 impl VideoReader {
-    /// A decoder for `path`, whose frames the probe listed.
-    pub fn open(path: &Path, probe: &VideoProbe) -> Result<VideoReader, VideoError> {
+    /// A decoder for `path`, whose frames the probe listed, delivering them as `turn` says.
+    pub fn open(path: &Path, probe: &VideoProbe, turn: FrameTurn) -> Result<VideoReader, VideoError> {
         init_gstreamer().map_err(|problem| VideoError::Open { path: path.to_owned(), problem })?;
         let open_error = |problem: String| VideoError::Open { path: path.to_owned(), problem };
         let pipeline = gst::Pipeline::new();
@@ -351,7 +420,20 @@ impl VideoReader {
         let convert = make("videoconvert", path)?;
         pipeline.add_many([&convert, sink.upcast_ref()]).map_err(|e| open_error(e.to_string()))?;
         convert.link(&sink).map_err(|e| open_error(e.to_string()))?;
-        let decode = source_into(&pipeline, path, "decodebin", &convert)?;
+        // `auto` follows the orientation tag the decoder passes on, as players do. The flip
+        // takes fewer formats than decoders give (not 4:2:2 or planar RGB): a conversion
+        // ahead of it passes the usual 4:2:0 through.
+        let first = if turn == FrameTurn::AsShown && !probe.orientation.is_upright() {
+            let to_flip = make("videoconvert", path)?;
+            let flip = make("videoflip", path)?;
+            flip.set_property_from_str("video-direction", "auto");
+            pipeline.add_many([&to_flip, &flip]).map_err(|e| open_error(e.to_string()))?;
+            gst::Element::link_many([&to_flip, &flip, &convert]).map_err(|e| open_error(e.to_string()))?;
+            to_flip
+        } else {
+            convert
+        };
+        let decode = source_into(&pipeline, path, "decodebin", &first)?;
         // A corrupt packet must cost its frame, not the stream: decoders give up after 10
         // errors in a row by default.
         if let Some(bin) = decode.downcast_ref::<gst::Bin>() {
@@ -372,8 +454,8 @@ impl VideoReader {
             pipeline,
             sink,
             frame_times: probe.frame_times.iter().map(|&t| (t * 1e9).round() as u64).collect(),
-            width: probe.width,
-            height: probe.height,
+            width: probe.frame_size(turn).0,
+            height: probe.frame_size(turn).1,
             position: 0,
             pending: None,
             started: false,
