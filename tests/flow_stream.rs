@@ -1,6 +1,6 @@
 //! The flow stream's schedule on a small rendered recording: which frames get an estimate,
 //! with which metadata, in which order, for a stream from its start, a live stream that skips
-//! its warm-up backlog, and a stream joined part-way.
+//! its warm-up backlog, and a stream joined part-way (its skin models adapted first).
 
 #![allow(clippy::unwrap_used)]
 
@@ -128,4 +128,31 @@ fn a_stream_joined_part_way_answers_with_a_cheaper_first_estimate_then_carries_i
         "joining: {join_first} evaluations, start: {start_first} (carried: {start_second}, {join_second})"
     );
     assert!(join_first > join_second, "still more than a carried estimate: {join_first} vs {join_second}");
+}
+
+#[test]
+fn a_stream_joined_part_way_adapts_its_skin_models_to_its_first_frame_before_estimating() {
+    let dir = tempfile::tempdir().unwrap();
+    let (rec, engine) = rendered_recording_and_engine(dir.path());
+    let mut stream = FlowStream::new(engine).with_frame_rate(rec.frame_rate()).without_waiting_for_models();
+    stream.joining_mid_stream();
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    let mut estimated = 0;
+    for k in 10..u64::from(FRAMES) {
+        rec.read_frame_into(k, false, &mut buf).unwrap();
+        stream
+            .push(k, &buf, |_, _: &SceneFlowEngine, _| {
+                estimated += 1;
+                Ok::<(), StreamError>(())
+            })
+            .unwrap();
+        if estimated > 0 {
+            break;
+        }
+    }
+    assert_eq!(estimated, 1, "the joined stream's first estimate");
+    // Its skin maps came from the models of a detection round on the first frame pushed
+    // (push index 0; at this size the round finds no face, so the models stay as they were).
+    let round = stream.faces_of_last_estimate().expect("a face round made the first estimate's skin maps");
+    assert_eq!(round.frame, 0);
 }

@@ -393,16 +393,28 @@ type Adapted = Result<(Vec<SkinModel>, FaceRound), String>;
 /// Face detection and skin adaptation on a thread of its own (the detector is not `Send`:
 /// it lives and dies there). Frame sets go in (with their push index), adapted models come
 /// out, one per frame set.
+/// A detection round asked of the face worker: the push index and bytes of a frame set, its
+/// missing views, and whether the stream will wait for the round.
+struct FaceRequest {
+    frame: u64,
+    frame_set: Vec<u8>,
+    missing: u32,
+    waited_for: bool,
+}
+
 struct FaceWorker {
-    frames: Option<Sender<(u64, Vec<u8>, u32)>>,
+    frames: Option<Sender<FaceRequest>>,
     models: Receiver<Adapted>,
     thread: Option<JoinHandle<()>>,
 }
 
-/// Nice value of the face-detection thread. Detections only adapt the skin models, which
-/// a live stream applies whenever they are ready; at the default priority a round (about
-/// 130 ms of one core for three cameras) took the cores from the frame being estimated and
-/// set the live pipeline's p99 latency (BENCHMARKS.md).
+/// Nice value of the face-detection threads once the stream no longer waits for their
+/// rounds. Detections only adapt the skin models, which a live stream applies whenever they
+/// are ready; at the default priority a round (about 130 ms of one core for three cameras)
+/// took the cores from the frame being estimated and set the live pipeline's p99 latency
+/// (BENCHMARKS.md). Rounds the stream waits for (the warm-up's, a joined stream's first) run
+/// at the default priority: at this one, beside an engine and a decoder that kept both cores
+/// busy, a live stream's first round took 2 to 3 s.
 const FACE_THREAD_NICE: i32 = 10;
 
 /// Gives the calling thread the nice value [`FACE_THREAD_NICE`] (on Linux a thread's own
@@ -421,21 +433,20 @@ fn face_threads(cameras: usize) -> usize {
 
 impl FaceWorker {
     fn new(cameras: &[Camera]) -> Self {
-        let (frame_tx, frame_rx) = channel::<(u64, Vec<u8>, u32)>();
+        let (frame_tx, frame_rx) = channel::<FaceRequest>();
         let (model_tx, model_rx) = channel();
         let cameras = cameras.to_vec();
         let thread = std::thread::Builder::new()
             .name("faces".into())
             .spawn(move || {
-                lower_this_threads_priority();
                 // The views of a round are searched in parallel on threads as low in priority
                 // as this one: a replay waiting for a round gets it from both cores, a live
                 // stream's estimates still come first.
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(face_threads(cameras.len()))
                     .thread_name(|k| format!("faces-{k}"))
-                    .start_handler(|_| lower_this_threads_priority())
                     .build();
+                let mut lowered = false;
                 let mut adapter = match SkinAdapter::new(&cameras, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY) {
                     Ok(a) => a,
                     Err(e) => {
@@ -443,7 +454,15 @@ impl FaceWorker {
                         return;
                     }
                 };
-                for (frame, frame_set, missing) in frame_rx {
+                for FaceRequest { frame, frame_set, missing, waited_for } in frame_rx {
+                    // Lowered once, for good: a thread may lower its priority but not raise it.
+                    if !waited_for && !lowered {
+                        lower_this_threads_priority();
+                        if let Ok(pool) = &pool {
+                            pool.broadcast(|_| lower_this_threads_priority());
+                        }
+                        lowered = true;
+                    }
                     let views = split_views(&cameras, &frame_set);
                     match &pool {
                         Ok(pool) => pool.install(|| adapter.adapt_now_partial(&views, missing)),
@@ -463,8 +482,11 @@ impl FaceWorker {
         Self { frames: Some(frame_tx), models: model_rx, thread }
     }
 
-    fn send(&self, frame: u64, frame_set: Vec<u8>, missing: u32) -> Result<(), StreamError> {
-        self.frames.as_ref().and_then(|tx| tx.send((frame, frame_set, missing)).ok()).ok_or(StreamError::FaceWorker)
+    /// Starts a round on `frame`; `waited_for` when the stream will wait for its models (the
+    /// round then keeps the default priority, see [`FACE_THREAD_NICE`]).
+    fn send(&self, frame: u64, frame_set: Vec<u8>, missing: u32, waited_for: bool) -> Result<(), StreamError> {
+        let request = FaceRequest { frame, frame_set, missing, waited_for };
+        self.frames.as_ref().and_then(|tx| tx.send(request).ok()).ok_or(StreamError::FaceWorker)
     }
 
     /// The next models if they are ready.
@@ -557,6 +579,9 @@ pub struct FlowStream<M> {
     wait_for_models: bool,
     /// What `wait_for_models` is at the start of each stream.
     waits_by_default: bool,
+    /// Detection rounds of the warm-up ([`WARM_UP_ROUNDS`]; one for a stream joined
+    /// part-way).
+    warm_up_rounds: usize,
     /// Frames between face detections.
     detect_every: u64,
     /// Push index of the first face detection (0; later for a stream joined part-way, whose
@@ -598,6 +623,7 @@ impl<M> FlowStream<M> {
             warm_up_frames: warm_up_frames(DEFAULT_DETECT_EVERY),
             wait_for_models: true,
             waits_by_default: true,
+            warm_up_rounds: WARM_UP_ROUNDS,
             detect_every: DEFAULT_DETECT_EVERY,
             detect_from: 0,
             model_lag: MODEL_LAG,
@@ -658,11 +684,16 @@ impl<M> FlowStream<M> {
     }
 
     /// For a stream joined part-way through (a restarted stage): nothing is held and
-    /// nothing waits for the face detector, so estimates start two frames later, the first
-    /// with [`JOIN_COLD_START_PASSES`] extra passes; the skin models start generic and
-    /// adapt as detections finish, the first started once the first estimate is out.
+    /// the first frame set is held for one detection round (about a round's time, at the
+    /// default priority), and estimates start two frames later, the first with
+    /// [`JOIN_COLD_START_PASSES`] extra passes. The round is not left to run beside the
+    /// estimates: the engine of a live stream that cannot keep up keeps both cores busy, and
+    /// there the detector's low-priority threads took 2 to 3 s for a first round on four
+    /// 1280x720 views at 30 fps, seconds of generic skin models in which a hand's track was
+    /// swapped (BENCHMARKS.md). Later models are applied when ready.
     pub fn joining_mid_stream(&mut self) {
-        self.warm_up_frames = 0;
+        self.warm_up_frames = 1;
+        self.warm_up_rounds = 1;
         self.wait_for_models = false;
         self.engine.set_next_cold_start_passes(JOIN_COLD_START_PASSES);
         // The face detector starts after the first estimate instead of competing with it.
@@ -766,6 +797,7 @@ impl<M> FlowStream<M> {
         self.held = Some(Vec::new());
         self.warm_up_frames = warm_up_frames(self.warm_up_spacing);
         self.wait_for_models = self.waits_by_default;
+        self.warm_up_rounds = WARM_UP_ROUNDS;
         self.pushed = 0;
         self.detect_from = 0;
         self.pending_models.clear();
@@ -853,10 +885,10 @@ impl<M> FlowStream<M> {
         if held.is_empty() {
             return Ok(());
         }
-        let rounds = if self.warm_up_frames == 0 { 0 } else { WARM_UP_ROUNDS.min(held.len()) };
+        let rounds = if self.warm_up_frames == 0 { 0 } else { self.warm_up_rounds.min(held.len()) };
         for k in 0..rounds {
             let index = (k as u64 * self.warm_up_spacing) as usize % held.len();
-            self.faces.send(index as u64, held[index].1.clone(), held[index].2)?;
+            self.faces.send(index as u64, held[index].1.clone(), held[index].2, true)?;
             let (models, round) = self.faces.recv()?;
             self.apply_models(&models, round)?;
         }
@@ -878,7 +910,7 @@ impl<M> FlowStream<M> {
         let k = self.pushed;
         let detect = k >= self.detect_from && (k - self.detect_from).is_multiple_of(self.detect_every);
         if detect && (self.wait_for_models || self.pending_models.is_empty()) {
-            self.faces.send(k, frame_set.to_vec(), missing)?;
+            self.faces.send(k, frame_set.to_vec(), missing, false)?;
             self.pending_models.push_back(k + self.model_lag);
         }
         if self.pending_models.front().is_some_and(|&due| due <= k) {
