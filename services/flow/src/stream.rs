@@ -390,9 +390,6 @@ pub fn skin_share(engine: &SceneFlowEngine, camera: usize, stride: usize) -> Opt
 /// Models adapted in one round, with the faces they were adapted with.
 type Adapted = Result<(Vec<SkinModel>, FaceRound), String>;
 
-/// Face detection and skin adaptation on a thread of its own (the detector is not `Send`:
-/// it lives and dies there). Frame sets go in (with their push index), adapted models come
-/// out, one per frame set.
 /// A detection round asked of the face worker: the push index and bytes of a frame set, its
 /// missing views, and whether the stream will wait for the round.
 struct FaceRequest {
@@ -402,6 +399,9 @@ struct FaceRequest {
     waited_for: bool,
 }
 
+/// Face detection and skin adaptation on a thread of its own (the detector is not `Send`:
+/// it lives and dies there). Frame sets go in (with their push index), adapted models come
+/// out, one per frame set.
 struct FaceWorker {
     frames: Option<Sender<FaceRequest>>,
     models: Receiver<Adapted>,
@@ -683,9 +683,10 @@ impl<M> FlowStream<M> {
         self
     }
 
-    /// For a stream joined part-way through (a restarted stage): nothing is held and
-    /// the first frame set is held for one detection round (about a round's time, at the
-    /// default priority), and estimates start two frames later, the first with
+    /// For a stream joined part-way through (a restarted stage, or a live run whose cameras
+    /// started before this stage was ready): no warm-up backlog; the first frame set is held
+    /// for one detection round (about a round's time, at the default priority), and
+    /// estimates start two frames later, the first with
     /// [`JOIN_COLD_START_PASSES`] extra passes. The round is not left to run beside the
     /// estimates: the engine of a live stream that cannot keep up keeps both cores busy, and
     /// there the detector's low-priority threads took 2 to 3 s for a first round on four
@@ -696,7 +697,7 @@ impl<M> FlowStream<M> {
         self.warm_up_rounds = 1;
         self.wait_for_models = false;
         self.engine.set_next_cold_start_passes(JOIN_COLD_START_PASSES);
-        // The face detector starts after the first estimate instead of competing with it.
+        // The next round starts after the first estimate instead of competing with it.
         self.detect_from = self.pushed + JOIN_FIRST_ESTIMATE_FRAMES;
     }
 
