@@ -391,12 +391,12 @@ pub fn skin_share(engine: &SceneFlowEngine, camera: usize, stride: usize) -> Opt
 type Adapted = Result<(Vec<SkinModel>, FaceRound), String>;
 
 /// A detection round asked of the face worker: the push index and bytes of a frame set, its
-/// missing views, and whether the stream will wait for the round.
+/// missing views, and whether it is a warm-up round (the stream holds its frames for it).
 struct FaceRequest {
     frame: u64,
     frame_set: Vec<u8>,
     missing: u32,
-    waited_for: bool,
+    warm_up: bool,
 }
 
 /// Face detection and skin adaptation on a thread of its own (the detector is not `Send`:
@@ -408,13 +408,13 @@ struct FaceWorker {
     thread: Option<JoinHandle<()>>,
 }
 
-/// Nice value of the face-detection threads once the stream no longer waits for their
-/// rounds. Detections only adapt the skin models, which a live stream applies whenever they
-/// are ready; at the default priority a round (about 130 ms of one core for three cameras)
-/// took the cores from the frame being estimated and set the live pipeline's p99 latency
-/// (BENCHMARKS.md). Rounds the stream waits for (the warm-up's, a joined stream's first) run
-/// at the default priority: at this one, beside an engine and a decoder that kept both cores
-/// busy, a live stream's first round took 2 to 3 s.
+/// Nice value of the face-detection threads after the warm-up. Detections only adapt the
+/// skin models, which a live stream applies whenever they are ready; at the default
+/// priority a round (about 130 ms of one core for three cameras) took the cores from the
+/// frame being estimated and set the live pipeline's p99 latency (BENCHMARKS.md). The
+/// warm-up's rounds, which the stream holds its frames for (a joined stream's single round
+/// too), run at the default priority: at this one, beside an engine and decoders that kept
+/// both cores busy, a live stream's first round took 2 to 3 s.
 const FACE_THREAD_NICE: i32 = 10;
 
 /// Gives the calling thread the nice value [`FACE_THREAD_NICE`] (on Linux a thread's own
@@ -454,9 +454,9 @@ impl FaceWorker {
                         return;
                     }
                 };
-                for FaceRequest { frame, frame_set, missing, waited_for } in frame_rx {
+                for FaceRequest { frame, frame_set, missing, warm_up } in frame_rx {
                     // Lowered once, for good: a thread may lower its priority but not raise it.
-                    if !waited_for && !lowered {
+                    if !warm_up && !lowered {
                         lower_this_threads_priority();
                         if let Ok(pool) = &pool {
                             pool.broadcast(|_| lower_this_threads_priority());
@@ -482,10 +482,10 @@ impl FaceWorker {
         Self { frames: Some(frame_tx), models: model_rx, thread }
     }
 
-    /// Starts a round on `frame`; `waited_for` when the stream will wait for its models (the
-    /// round then keeps the default priority, see [`FACE_THREAD_NICE`]).
-    fn send(&self, frame: u64, frame_set: Vec<u8>, missing: u32, waited_for: bool) -> Result<(), StreamError> {
-        let request = FaceRequest { frame, frame_set, missing, waited_for };
+    /// Starts a round on `frame`; a `warm_up` round keeps the default priority (see
+    /// [`FACE_THREAD_NICE`]).
+    fn send(&self, frame: u64, frame_set: Vec<u8>, missing: u32, warm_up: bool) -> Result<(), StreamError> {
+        let request = FaceRequest { frame, frame_set, missing, warm_up };
         self.frames.as_ref().and_then(|tx| tx.send(request).ok()).ok_or(StreamError::FaceWorker)
     }
 
@@ -579,9 +579,6 @@ pub struct FlowStream<M> {
     wait_for_models: bool,
     /// What `wait_for_models` is at the start of each stream.
     waits_by_default: bool,
-    /// Detection rounds of the warm-up ([`WARM_UP_ROUNDS`]; one for a stream joined
-    /// part-way).
-    warm_up_rounds: usize,
     /// Frames between face detections.
     detect_every: u64,
     /// Push index of the first face detection (0; later for a stream joined part-way, whose
@@ -623,7 +620,6 @@ impl<M> FlowStream<M> {
             warm_up_frames: warm_up_frames(DEFAULT_DETECT_EVERY),
             wait_for_models: true,
             waits_by_default: true,
-            warm_up_rounds: WARM_UP_ROUNDS,
             detect_every: DEFAULT_DETECT_EVERY,
             detect_from: 0,
             model_lag: MODEL_LAG,
@@ -693,8 +689,8 @@ impl<M> FlowStream<M> {
     /// 1280x720 views at 30 fps, seconds of generic skin models in which a hand's track was
     /// swapped (BENCHMARKS.md). Later models are applied when ready.
     pub fn joining_mid_stream(&mut self) {
+        // One frame held: one round (the warm-up's rounds are capped by the frames held).
         self.warm_up_frames = 1;
-        self.warm_up_rounds = 1;
         self.wait_for_models = false;
         self.engine.set_next_cold_start_passes(JOIN_COLD_START_PASSES);
         // The next round starts after the first estimate instead of competing with it.
@@ -798,7 +794,6 @@ impl<M> FlowStream<M> {
         self.held = Some(Vec::new());
         self.warm_up_frames = warm_up_frames(self.warm_up_spacing);
         self.wait_for_models = self.waits_by_default;
-        self.warm_up_rounds = WARM_UP_ROUNDS;
         self.pushed = 0;
         self.detect_from = 0;
         self.pending_models.clear();
@@ -886,7 +881,7 @@ impl<M> FlowStream<M> {
         if held.is_empty() {
             return Ok(());
         }
-        let rounds = if self.warm_up_frames == 0 { 0 } else { self.warm_up_rounds.min(held.len()) };
+        let rounds = WARM_UP_ROUNDS.min(held.len());
         for k in 0..rounds {
             let index = (k as u64 * self.warm_up_spacing) as usize % held.len();
             self.faces.send(index as u64, held[index].1.clone(), held[index].2, true)?;

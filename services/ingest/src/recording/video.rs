@@ -434,6 +434,7 @@ impl VideoReader {
             convert
         };
         let decode = source_into(&pipeline, path, "decodebin", &first)?;
+        let (width, height) = probe.frame_size(turn);
         // A corrupt packet must cost its frame, not the stream: decoders give up after 10
         // errors in a row by default.
         if let Some(bin) = decode.downcast_ref::<gst::Bin>() {
@@ -454,8 +455,8 @@ impl VideoReader {
             pipeline,
             sink,
             frame_times: probe.frame_times.iter().map(|&t| (t * 1e9).round() as u64).collect(),
-            width: probe.frame_size(turn).0,
-            height: probe.frame_size(turn).1,
+            width,
+            height,
             position: 0,
             pending: None,
             started: false,
