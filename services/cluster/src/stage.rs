@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use handflow_protocol::messages::ScenePoint;
 use handflow_protocol::Camera;
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Matrix3, Point3, Vector3};
 
 use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, side_extremity, Component, EmConfig, EmFit};
 use crate::hand::{continuity_weight, locate_hand};
@@ -291,12 +291,12 @@ impl ClusterStage {
         // says little about its size, so its centre comes from the spread across the view.
         if let (Some(fit), Some(raw), true) = (&fit, &raw, self.centre_correction) {
             if let (State::Tracked, Some(m)) = (tracks[0].state, self.tracker.assigned()[0]) {
-                let mut head = raw.components[m.cluster];
-                let bound = HEAD_MAX_RADIUS_M * surface_share(&head, &self.eye);
-                surface_to_centre(&mut head, &self.eye, self.em.min_std, f64::INFINITY, bound);
-                // By the share of the measurement the tracker took.
-                tracks[0].position += (head.position - fit.components[m.cluster].position) * m.pull;
-                self.tracker.set_position(0, tracks[0].position);
+                let hands = [1, 2].map(|k| self.tracker.assigned()[k].map(|h| h.cluster));
+                if let Some(centre) = head_centre(&raw.components, m.cluster, &hands, &self.eye, self.em.min_std) {
+                    // By the share of the measurement the tracker took.
+                    tracks[0].position += (centre - fit.components[m.cluster].position) * m.pull;
+                    self.tracker.set_position(0, tracks[0].position);
+                }
             }
         }
         // A hand's cluster in short sleeves holds the forearm too: the hand is its distal end.
@@ -501,6 +501,80 @@ pub fn surface_share(c: &Component, eye: &Point3<f64>) -> f64 {
     ((NOISE_DEPTH_RATIO - ratio) / (NOISE_DEPTH_RATIO - SURFACE_DEPTH_RATIO)).clamp(0.0, 1.0)
 }
 
+/// The centre of the head whose skin is component `head` (raw, as EM fitted it) of
+/// `components`, hands' components `hands`: the head with its pieces
+/// ([`head_with_its_pieces`]) moved from its visible surface to its middle by the share its
+/// own component's shape supports ([`surface_share`]; the pieces lie behind it by
+/// construction and would widen its depth). The head's skin is its face, a shallow cap of a
+/// nearly round object: its depth spread says little about its size, so the move comes from
+/// the spread across the view. `None` for an unknown component.
+pub fn head_centre(
+    components: &[Component],
+    head: usize,
+    hands: &[Option<usize>; 2],
+    eye: &Point3<f64>,
+    min_std: f64,
+) -> Option<Vector3<f64>> {
+    let bound = HEAD_MAX_RADIUS_M * surface_share(components.get(head)?, eye);
+    let mut whole = head_with_its_pieces(components, head, hands, eye)?;
+    surface_to_centre(&mut whole, eye, min_std, f64::INFINITY, bound);
+    Some(whole.position)
+}
+
+/// The head's component `head` with the pieces EM split off it behind its visible surface.
+/// A Gaussian fits the cap of skin a camera sees of a head poorly, and a spare component
+/// (see [`CLUTTER_COMPONENTS`]) can take the cap's rim, which lies deeper than its middle:
+/// measured alone, the head then jumps towards the camera and looks narrower, and its
+/// centre lands short of the middle (`occluded-side`: 1.3 cm off with the rim, 2.9 cm
+/// without, from frame to frame). A piece is a component no hand holds, lighter than the
+/// head's, lying behind the head's centroid along the line of sight from `eye` by at most a
+/// head's depth and within a head's radius of it across the view; a neck (below by more
+/// than that) or a hand in front of the face is not. The pieces join by mass, their spread
+/// about the joint centre included.
+pub fn head_with_its_pieces(
+    components: &[Component],
+    head: usize,
+    hands: &[Option<usize>; 2],
+    eye: &Point3<f64>,
+) -> Option<Component> {
+    let &main = components.get(head)?;
+    let Some(sight) = (main.position - eye.coords).try_normalize(1e-9) else { return Some(main) };
+    let is_piece = |j: usize, c: &Component| {
+        let d = c.position - main.position;
+        let along = d.dot(&sight);
+        let across = (d - sight * along).norm();
+        j != head
+            && !hands.contains(&Some(j))
+            && !c.empty
+            && c.mass > 0.0
+            && c.mass < main.mass
+            && along > 0.0
+            && along <= 2.0 * HEAD_MAX_RADIUS_M
+            && across <= HEAD_MAX_RADIUS_M
+    };
+    let parts: Vec<&Component> =
+        components.iter().enumerate().filter(|&(j, c)| j == head || is_piece(j, c)).map(|(_, c)| c).collect();
+    let mass: f64 = parts.iter().map(|c| c.mass).sum();
+    if parts.len() < 2 || mass <= 0.0 {
+        return Some(main);
+    }
+    let mut whole = main;
+    whole.position = parts.iter().map(|c| c.position * c.mass).sum::<Vector3<f64>>() / mass;
+    whole.velocity = parts.iter().map(|c| c.velocity * c.mass).sum::<Vector3<f64>>() / mass;
+    let spread: Matrix3<f64> = parts
+        .iter()
+        .map(|c| {
+            let d = c.position - whole.position;
+            (c.covariance.fixed_view::<3, 3>(0, 0) + d * d.transpose()) * c.mass
+        })
+        .sum::<Matrix3<f64>>()
+        / mass;
+    whole.covariance.fixed_view_mut::<3, 3>(0, 0).copy_from(&spread);
+    whole.mass = mass;
+    whole.mixing = parts.iter().map(|c| c.mixing).sum();
+    Some(whole)
+}
+
 /// Moves a cluster's centre from the surface the reference camera sees to the object's
 /// middle. The points of a roughly convex object (a head, a hand) seen from one side lie on
 /// its front: for a sphere of radius r the visible points' centroid is 2r/3 in front of the
@@ -621,6 +695,51 @@ mod tests {
         // A tall narrow object (a head with its neck) is judged by its narrowest width.
         let tall: Vec<Vector3<f64>> = cap.iter().flat_map(|p| [*p, p + b * 0.12]).collect();
         assert_eq!(surface_share(&component_of(&tall), &eye), 1.0);
+    }
+
+    #[test]
+    fn a_head_whose_rim_em_split_off_is_measured_whole_and_nothing_else_joins_it() {
+        let eye = Point3::new(0.0, 0.0, 0.0);
+        let centre = Vector3::new(0.05, 0.1, 1.8);
+        let sight = centre.normalize();
+        let a = sight.cross(&Vector3::y()).normalize();
+        let b = sight.cross(&a);
+        let radius = 0.09;
+        // The cap of a head the eye sees, split as EM split `occluded-side`'s: its middle, and
+        // its rim (the deeper ring) in a component of its own.
+        let (mut middle, mut rim) = (Vec::new(), Vec::new());
+        for i in -20..=20 {
+            for j in -20..=20 {
+                let (u, v) = (f64::from(i) / 20.0, f64::from(j) / 20.0);
+                if u * u + v * v <= 1.0 {
+                    let depth = (1.0 - u * u - v * v).max(0.0).sqrt();
+                    let p = centre + radius * (a * u + b * v - sight * depth);
+                    if u * u + v * v > 0.6 {
+                        rim.push(p)
+                    } else {
+                        middle.push(p)
+                    }
+                }
+            }
+        }
+        let at = |offset: Vector3<f64>| component_of(&middle.iter().map(|p| p + offset).take(40).collect::<Vec<_>>());
+        let components = vec![
+            component_of(&middle),
+            component_of(&rim),
+            // A neck below, a hand in front of the face, and a hand's own component behind.
+            at(Vector3::new(0.0, -0.17, 0.0)),
+            at(-sight * 0.15),
+            at(sight * 0.08 + a * 0.02),
+        ];
+        let hands = [None, Some(4)];
+        let whole = head_with_its_pieces(&components, 0, &hands, &eye).expect("a head");
+        assert_eq!(whole.mass, (middle.len() + rim.len()) as f64, "the rim joins, nothing else");
+        let found = head_centre(&components, 0, &hands, &eye, 0.0).expect("a centre");
+        assert!((found - centre).norm() < 0.005, "{:?}", found - centre);
+        // Measured without its rim, the head lands well short of its middle.
+        let alone = head_centre(&components[..1], 0, &hands, &eye, 0.0).expect("a centre");
+        assert!((alone - centre).norm() > 0.02, "{:?} (whole: {:?})", alone - centre, found - centre);
+        assert!(head_centre(&components, 7, &hands, &eye, 0.0).is_none());
     }
 
     #[test]
