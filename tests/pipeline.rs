@@ -184,6 +184,51 @@ fn a_rig_with_a_camera_mounted_sideways_streams_its_portrait_views_and_replays_a
     );
 }
 
+#[test]
+fn a_rig_mounted_sideways_whose_calibration_records_no_mounts_is_tracked_upright_by_its_faces() {
+    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
+    let _one = serial();
+    let dir = tempfile::tempdir().unwrap();
+    let frames = 30;
+    // Every camera held sideways, two one way and one the other, and a calibration that
+    // cannot say so (as Pose2Sim's, caliscope's and OpenCV's files cannot): the cameras'
+    // own estimate of the up lies on its side.
+    let mut spec = SceneSpec::preset("signer-3cam").unwrap();
+    spec.frames = frames;
+    spec.cameras.mount_quarter_turns = vec![1, 1, 3];
+    let rec_dir = dir.path().join("all-sideways");
+    write_recording(&Renderer::new(&spec).unwrap(), &rec_dir, frames).unwrap();
+    let rig_path = rec_dir.join("rig.toml");
+    let rig = std::fs::read_to_string(&rig_path).unwrap();
+    let unmounted: Vec<&str> = rig.lines().filter(|l| !l.starts_with("mount_quarter_turns")).collect();
+    assert!(unmounted.len() < rig.lines().count(), "the rig file records the mounts:\n{rig}");
+    std::fs::write(&rig_path, unmounted.join("\n")).unwrap();
+    let rec = Recording::open(&rec_dir).unwrap();
+    assert!(rec.rig().world_up().direction.y.abs() < 0.5, "the cameras' estimate lies on its side");
+
+    let out = dir.path().join("trajectories.jsonl");
+    let text = replay_succeeds(&rec_dir, &out, "faces-up");
+    assert!(text.contains("from the faces the views see"), "the faces' up is said:\n{text}");
+    let streamed = read_tracks(&out).unwrap();
+    let scores = evaluate_tracks(&rec, &streamed).unwrap();
+    for o in [&scores.head, &scores.left_hand, &scores.right_hand] {
+        assert!(o.agreement >= 0.95 && o.rmse_3d_m < 0.03, "{scores:?}");
+    }
+    assert_eq!(scores.identity_switches, 0);
+
+    let mut offline = Vec::new();
+    track_recording(&rec_dir, &TrackOptions::default(), |r, _, _| {
+        offline.push(serde_json::to_string(r).unwrap());
+        Ok(())
+    })
+    .unwrap();
+    let file = std::fs::read_to_string(&out).unwrap();
+    assert!(
+        file.lines().eq(offline.iter().map(String::as_str)),
+        "replay must give exactly what `handflow track` gives"
+    );
+}
+
 /// The sequences the publisher reported lost (`frames lost upstream: sequence a..=b`).
 fn reported_losses(log: &str) -> BTreeSet<u64> {
     let mut lost = BTreeSet::new();

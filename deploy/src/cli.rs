@@ -173,7 +173,7 @@ struct TrackerArgs {
     part: RecordingArgs,
     /// The world's up direction `x,y,z`, overriding the calibration's or the estimate from
     /// the cameras.
-    #[arg(long, value_parser = parse_direction)]
+    #[arg(long, value_parser = handflow_protocol::rig::parse_direction)]
     up: Option<[f64; 3]>,
     /// Keep cluster centres on the visible surface instead of the objects' middles.
     #[arg(long)]
@@ -221,18 +221,6 @@ impl RecordingArgs {
     }
 }
 
-/// `x,y,z`, not all zero.
-fn parse_direction(text: &str) -> Result<[f64; 3], String> {
-    let values: Vec<f64> = text
-        .split(',')
-        .map(|v| v.trim().parse::<f64>().map_err(|_| format!("`{v}` is not a number")))
-        .collect::<Result<_, _>>()?;
-    match values[..] {
-        [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) && (x, y, z) != (0.0, 0.0, 0.0) => Ok([x, y, z]),
-        _ => Err(format!("expected a direction `x,y,z` of three finite numbers, not all zero; got `{text}`")),
-    }
-}
-
 #[derive(Args, Debug, Default)]
 struct RunArgs {
     /// Pipeline file (TOML; see deploy/pipelines/). Flags override its fields.
@@ -276,7 +264,7 @@ struct RunArgs {
     start: Option<u64>,
     /// The world's up direction `x,y,z`, overriding the calibration's or the estimate from
     /// the cameras.
-    #[arg(long, value_parser = parse_direction)]
+    #[arg(long, value_parser = handflow_protocol::rig::parse_direction)]
     up: Option<[f64; 3]>,
     /// Serve the live viewer on this address (default 127.0.0.1:8787, loopback only; for
     /// example 0.0.0.0:8787 to open it from other machines).

@@ -20,4 +20,5 @@ pub mod commands;
 pub mod engine_overrides;
 pub mod eval;
 pub mod export;
+pub mod face_up;
 pub mod recording_engine;

@@ -16,16 +16,31 @@ use handflow_protocol::Camera;
 
 use crate::engine_overrides::apply_overrides;
 
-/// The rig the tracker runs on: the recording's, with the user's up if given, exactly as
+/// The rig the tracker runs on: the recording's, with the user's up if given, else with the
+/// up the faces give where they overrule the cameras' estimate ([`tracking_up`]), exactly as
 /// the streaming stages receive it (through the rig message's TOML, which writes rotations as
 /// Rodrigues vectors), so that `handflow track` and `handflow run` compute on the same numbers
 /// and write the same bytes.
 pub fn tracking_rig(rec: &Recording, up: Option<[f64; 3]>) -> Result<handflow_protocol::Rig> {
     let mut rig = rec.rig().clone();
-    if let Some(up) = up {
+    if let Some(up) = tracking_up(rec, up)? {
         rig.set_up(nalgebra::Vector3::from(up))?;
     }
     Ok(handflow_protocol::Rig::from_toml_str(&rig.to_toml_string())?)
+}
+
+/// The up to declare for tracking a recording: the user's (`up`), else the faces' where the
+/// rig states none and they overrule the cameras' estimate ([`crate::face_up::face_up`],
+/// logged); `None` leaves the rig's own. `handflow run` passes it to the ingest service as
+/// `--up`, so a replay tracks on the rig `track` does.
+pub fn tracking_up(rec: &Recording, up: Option<[f64; 3]>) -> Result<Option<[f64; 3]>> {
+    if up.is_some() {
+        return Ok(up);
+    }
+    Ok(crate::face_up::face_up(rec, rec.rig())?.map(|found| {
+        tracing::warn!("{}", found.summary());
+        [found.direction.x, found.direction.y, found.direction.z]
+    }))
 }
 
 /// The flow stream's face for the cluster stage, as the particle header carries it between

@@ -252,6 +252,31 @@ fn unrecorded_mounts_are_inferred_from_the_geometry() {
 }
 
 #[test]
+fn mounts_inferred_under_a_wrong_estimate_are_judged_again_once_the_up_is_declared() {
+    // Every camera sideways without saying so, two one way and one the other: the estimate
+    // follows the two, and the third is inferred upside down under it.
+    let up = Vector3::y();
+    let cameras = [(-0.6f64, 1), (0.0, 1), (0.6, 3)]
+        .into_iter()
+        .enumerate()
+        .map(|(i, (angle, turns))| {
+            let position = Vector3::new(angle.sin(), 0.0, angle.cos()) * 1.8 + up * 0.15;
+            camera(&format!("cam_{i}"), position, up * 0.1, up, turns, false)
+        })
+        .collect();
+    let mut rig = Rig::new(cameras);
+    rig.infer_mounts();
+    assert!(rig.world_up().direction.dot(&up).abs() < 0.5, "the estimate lies on its side");
+    assert_eq!(rig.cameras.iter().map(|c| c.mount_quarter_turns).collect::<Vec<_>>(), vec![0, 0, 2]);
+    // Told where up is, every mount the file did not record is judged again, the inferred
+    // one included.
+    rig.set_up(up).expect("valid up");
+    assert_eq!(rig.cameras.iter().map(|c| c.mount_quarter_turns).collect::<Vec<_>>(), vec![1, 1, 3]);
+    assert!(rig.cameras.iter().all(|c| c.image_up().dot(&up) > 0.9));
+    assert_eq!(rig.mounts_inferred, vec![true, true, true]);
+}
+
+#[test]
 fn mounts_are_left_alone_without_a_clear_up() {
     let up = Vector3::y();
     // Two of three cameras sideways without saying so: the estimated up is theirs to

@@ -398,7 +398,18 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
     if let Some(calibration) = &p.calibration {
         ingest_args.extend(["--calibration".into(), calibration.display().to_string()]);
     }
-    if let Some([x, y, z]) = p.up {
+    // A recording's up as `track` takes it (the faces' where they overrule the cameras'), so
+    // a replay tracks on the same rig.
+    let up = match (&p.recording, p.up) {
+        (Some(dir), None) => {
+            let options =
+                handflow_ingest::OpenOptions { calibration: p.calibration.clone(), start: p.start, frames: None };
+            let rec = handflow_ingest::Recording::open_with(dir, &options)?;
+            crate::recording_engine::tracking_up(&rec, None)?
+        }
+        (_, up) => up,
+    };
+    if let Some([x, y, z]) = up {
         ingest_args.push(format!("--up={x},{y},{z}"));
     }
     let mut publish_args = Vec::new();

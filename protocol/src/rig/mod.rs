@@ -69,7 +69,7 @@ const CALIBRATION_EXTENSIONS: [&str; 4] = ["toml", "yml", "yaml", "xml"];
 pub use camera::{Camera, Distortion, Ray};
 pub use error::RigError;
 pub use format::RigFormat;
-pub use up::{UpSource, WorldUp};
+pub use up::{parse_direction, UpSource, WorldUp};
 
 /// The calibrated cameras of a capture rig, in a fixed order.
 #[derive(Clone, Debug, PartialEq, Default)]
@@ -84,13 +84,17 @@ pub struct Rig {
     /// left out, ...). Each was also logged as a warning. Not written by
     /// [`Rig::to_toml_string`].
     pub notes: Vec<String>,
+    /// Per camera (rig order; missing entries count as false), whether its mount was set by
+    /// [`Rig::infer_mounts`] rather than recorded in the file: an up declared later judges
+    /// such a mount again, where a recorded one is the user's word.
+    pub mounts_inferred: Vec<bool>,
 }
 
 impl Rig {
     /// A rig of `cameras`, with no declared up and no notes (not validated: build the
     /// cameras with [`Camera::new`]).
     pub fn new(cameras: Vec<Camera>) -> Rig {
-        Rig { cameras, declared_up: None, notes: Vec::new() }
+        Rig { cameras, declared_up: None, notes: Vec::new(), mounts_inferred: Vec::new() }
     }
 
     /// Parses a rig file's text (see the [module documentation](self) for the format).
@@ -276,14 +280,15 @@ impl Rig {
 
     /// Sets each camera's [`Camera::mount_quarter_turns`] from the geometry where the file
     /// did not record one (most formats cannot: Pose2Sim's, anipose's, OpenCV's; a recorded
-    /// mount is kept): the quarter turns that bring the world's up to the top of its frames. The
+    /// mount is kept, one inferred before is judged again): the quarter turns that bring the
+    /// world's up to the top of its frames. The
     /// face detector finds upright faces only, so a sideways camera whose mount is unknown
     /// sees no face. Judged only when most cameras agree with the world's up as they are
     /// (always with a declared up); a camera looking along the up, or rolled by about 45
     /// degrees, keeps its mount. Each change is logged and kept in [`Rig::notes`].
     pub fn infer_mounts(&mut self) {
         let up = self.world_up();
-        for note in up::infer_mounts(&mut self.cameras, &up) {
+        for note in up::infer_mounts(&mut self.cameras, &mut self.mounts_inferred, &up) {
             tracing::info!("{note}");
             self.notes.push(note);
         }

@@ -56,6 +56,19 @@ impl std::fmt::Display for UpSource {
     }
 }
 
+/// A direction `x,y,z` as the command lines take an up (`--up 0,0,1`): three finite numbers,
+/// not all zero.
+pub fn parse_direction(text: &str) -> Result<[f64; 3], String> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f64>().map_err(|_| format!("`{v}` is not a number")))
+        .collect::<Result<_, _>>()?;
+    match values[..] {
+        [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) && (x, y, z) != (0.0, 0.0, 0.0) => Ok([x, y, z]),
+        _ => Err(format!("expected a direction `x,y,z` of three finite numbers, not all zero; got `{text}`")),
+    }
+}
+
 /// `direction` normalised, or why it cannot be an up direction.
 pub(crate) fn unit_up(direction: Vector3<f64>) -> Result<Vector3<f64>, String> {
     if !direction.iter().all(|c| c.is_finite()) {
@@ -168,19 +181,24 @@ pub(crate) fn upright_turns(camera: &Camera, up: &Vector3<f64>) -> Option<u8> {
 
 /// Mount turns from the geometry: each camera's [`upright_turns`] under the world's up
 /// (declared, or estimated from the cameras as they are mounted now), for cameras whose
-/// mount is not recorded (zero). With an estimated up, only when most cameras already
-/// agree with it, so an up estimated from cameras mounted sideways without saying so
-/// corrects none of them. Returns a note per camera changed.
-pub(crate) fn infer_mounts(cameras: &mut [Camera], up: &WorldUp) -> Vec<String> {
+/// mount is not recorded (zero) or was inferred before (`inferred[k]`, set here for each
+/// camera changed). With an estimated up, only when most cameras already agree with it, so
+/// an up estimated from cameras mounted sideways without saying so corrects none of them.
+/// Returns a note per camera changed.
+pub(crate) fn infer_mounts(cameras: &mut [Camera], inferred: &mut Vec<bool>, up: &WorldUp) -> Vec<String> {
+    inferred.resize(cameras.len(), false);
     let turns: Vec<Option<u8>> = cameras.iter().map(|c| upright_turns(c, &up.direction)).collect();
     let agreeing = cameras.iter().zip(&turns).filter(|(c, t)| **t == Some(c.mount_quarter_turns)).count();
     if matches!(up.source, UpSource::Estimated { .. }) && 2 * agreeing <= cameras.len() {
         return Vec::new();
     }
     let mut notes = Vec::new();
-    for (camera, turns) in cameras.iter_mut().zip(turns) {
-        // A mount the file records is the user's word; only unrecorded (zero) ones are set.
-        let Some(turns) = turns.filter(|&t| t != 0 && camera.mount_quarter_turns == 0) else { continue };
+    for ((camera, turns), inferred) in cameras.iter_mut().zip(turns).zip(inferred.iter_mut()) {
+        // A mount the file records is the user's word; only unrecorded (zero) or inferred
+        // ones are set.
+        let judged = camera.mount_quarter_turns == 0 || *inferred;
+        let Some(turns) = turns.filter(|&t| judged && t != camera.mount_quarter_turns) else { continue };
+        *inferred = true;
         notes.push(format!(
             "camera `{}`: mounted {turns} clockwise quarter turn(s) from upright, by its calibration and the \
              world's up (the file records no mount); its frames are turned that much for face detection",

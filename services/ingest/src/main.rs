@@ -68,8 +68,8 @@ struct Args {
     start: Option<u64>,
     /// The world's up direction `x,y,z`, published with the rig (overrides the calibration's
     /// or the estimate from the cameras).
-    #[arg(long, value_delimiter = ',', num_args = 3, allow_negative_numbers = true)]
-    up: Option<Vec<f64>>,
+    #[arg(long, value_parser = handflow_protocol::rig::parse_direction, allow_negative_numbers = true)]
+    up: Option<[f64; 3]>,
     /// The frame set to start at: the launcher restarts a dead ingest where the stream was
     /// (the progress ingest publishes on `<services>/progress/ingest` after each frame set).
     #[arg(long)]

@@ -45,7 +45,7 @@ thread_local! {
 }
 
 /// Runs `f` with this thread's face detector, built at its first use.
-fn with_detector<R>(f: impl FnOnce(&mut FaceDetector) -> R) -> Result<R, String> {
+pub fn with_detector<R>(f: impl FnOnce(&mut FaceDetector) -> R) -> Result<R, String> {
     DETECTOR.with(|cell| {
         let mut slot = cell.borrow_mut();
         let detector = match slot.as_mut() {
