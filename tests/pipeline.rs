@@ -149,18 +149,42 @@ fn replay_through_the_four_processes_matches_the_truth_and_the_offline_tracker_f
     assert!(text.contains("0 frames lost upstream"), "{text}");
 }
 
+/// Renders the first `frames` frames of `signer-3cam` with its cameras mounted `turns`
+/// clockwise quarter turns into `dir/name`.
+fn render_mounted(dir: &Path, name: &str, turns: Vec<u8>, frames: u32) -> std::path::PathBuf {
+    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
+    let mut spec = SceneSpec::preset("signer-3cam").unwrap();
+    spec.frames = frames;
+    spec.cameras.mount_quarter_turns = turns;
+    let rec_dir = dir.join(name);
+    write_recording(&Renderer::new(&spec).unwrap(), &rec_dir, frames).unwrap();
+    rec_dir
+}
+
+/// Asserts that the replay's file `out` holds exactly what `handflow track` gives on
+/// `rec_dir`, and returns its line count.
+fn assert_replay_is_track(rec_dir: &Path, out: &Path) -> usize {
+    let mut offline = Vec::new();
+    track_recording(rec_dir, &TrackOptions::default(), |r, _, _| {
+        offline.push(serde_json::to_string(r).unwrap());
+        Ok(())
+    })
+    .unwrap();
+    let file = std::fs::read_to_string(out).unwrap();
+    assert!(
+        file.lines().eq(offline.iter().map(String::as_str)),
+        "replay must give exactly what `handflow track` gives"
+    );
+    file.lines().count()
+}
+
 #[test]
 fn a_rig_with_a_camera_mounted_sideways_streams_its_portrait_views_and_replays_as_track_tracks() {
-    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
     let _one = serial();
     let dir = tempfile::tempdir().unwrap();
     let frames = 30;
     // The front camera held sideways: 480x640 frames between two 640x480 ones.
-    let mut spec = SceneSpec::preset("signer-3cam").unwrap();
-    spec.frames = frames;
-    spec.cameras.mount_quarter_turns = vec![0, 1, 0];
-    let rec_dir = dir.path().join("sideways");
-    write_recording(&Renderer::new(&spec).unwrap(), &rec_dir, frames).unwrap();
+    let rec_dir = render_mounted(dir.path(), "sideways", vec![0, 1, 0], frames);
     let rec = Recording::open(&rec_dir).unwrap();
     let sizes: Vec<(u32, u32)> = rec.rig().cameras.iter().map(|c| (c.width, c.height)).collect();
     assert_eq!(sizes, [(640, 480), (480, 640), (640, 480)]);
@@ -169,35 +193,17 @@ fn a_rig_with_a_camera_mounted_sideways_streams_its_portrait_views_and_replays_a
     let text = replay_succeeds(&rec_dir, &out, "sideways");
     assert!(text.contains("640x480 / 480x640 / 640x480"), "ingest names each view's size:\n{text}");
     assert!(!text.contains("skipping frame set"), "no frame set refused:\n{text}");
-
-    let mut offline = Vec::new();
-    track_recording(&rec_dir, &TrackOptions::default(), |r, _, _| {
-        offline.push(serde_json::to_string(r).unwrap());
-        Ok(())
-    })
-    .unwrap();
-    let file = std::fs::read_to_string(&out).unwrap();
-    assert_eq!(file.lines().count(), frames as usize, "every frame");
-    assert!(
-        file.lines().eq(offline.iter().map(String::as_str)),
-        "replay must give exactly what `handflow track` gives"
-    );
+    assert_eq!(assert_replay_is_track(&rec_dir, &out), frames as usize, "every frame");
 }
 
 #[test]
 fn a_rig_mounted_sideways_whose_calibration_records_no_mounts_is_tracked_upright_by_its_faces() {
-    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
     let _one = serial();
     let dir = tempfile::tempdir().unwrap();
-    let frames = 30;
     // Every camera held sideways, two one way and one the other, and a calibration that
     // cannot say so (as Pose2Sim's, caliscope's and OpenCV's files cannot): the cameras'
     // own estimate of the up lies on its side.
-    let mut spec = SceneSpec::preset("signer-3cam").unwrap();
-    spec.frames = frames;
-    spec.cameras.mount_quarter_turns = vec![1, 1, 3];
-    let rec_dir = dir.path().join("all-sideways");
-    write_recording(&Renderer::new(&spec).unwrap(), &rec_dir, frames).unwrap();
+    let rec_dir = render_mounted(dir.path(), "all-sideways", vec![1, 1, 3], 30);
     let rig_path = rec_dir.join("rig.toml");
     let rig = std::fs::read_to_string(&rig_path).unwrap();
     let unmounted: Vec<&str> = rig.lines().filter(|l| !l.starts_with("mount_quarter_turns")).collect();
@@ -215,18 +221,7 @@ fn a_rig_mounted_sideways_whose_calibration_records_no_mounts_is_tracked_upright
         assert!(o.agreement >= 0.95 && o.rmse_3d_m < 0.03, "{scores:?}");
     }
     assert_eq!(scores.identity_switches, 0);
-
-    let mut offline = Vec::new();
-    track_recording(&rec_dir, &TrackOptions::default(), |r, _, _| {
-        offline.push(serde_json::to_string(r).unwrap());
-        Ok(())
-    })
-    .unwrap();
-    let file = std::fs::read_to_string(&out).unwrap();
-    assert!(
-        file.lines().eq(offline.iter().map(String::as_str)),
-        "replay must give exactly what `handflow track` gives"
-    );
+    assert_replay_is_track(&rec_dir, &out);
 }
 
 /// The sequences the publisher reported lost (`frames lost upstream: sequence a..=b`).
