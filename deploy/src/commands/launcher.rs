@@ -399,13 +399,16 @@ pub fn run_pipeline(p: &Pipeline) -> Result<RunReport> {
         ingest_args.extend(["--calibration".into(), calibration.display().to_string()]);
     }
     // A recording's up as `track` takes it (the faces' where they overrule the cameras'), so
-    // a replay tracks on the same rig.
+    // a replay tracks on the same rig. A recording that does not open is the ingest stage's
+    // to report, as it reports every fault of its input.
     let up = match (&p.recording, p.up) {
         (Some(dir), None) => {
             let options =
                 handflow_ingest::OpenOptions { calibration: p.calibration.clone(), start: p.start, frames: None };
-            let rec = handflow_ingest::Recording::open_with(dir, &options)?;
-            crate::recording_engine::tracking_up(&rec, None)?
+            match handflow_ingest::Recording::open_with(dir, &options) {
+                Ok(rec) => crate::recording_engine::tracking_up(&rec, None)?,
+                Err(_) => None,
+            }
         }
         (_, up) => up,
     };
