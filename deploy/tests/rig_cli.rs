@@ -78,3 +78,27 @@ fn rig_convert_writes_our_toml_of_the_same_rig() {
         }
     }
 }
+
+#[test]
+fn rig_show_on_a_recording_mostly_mounted_sideways_gives_the_up_its_faces_show() {
+    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
+    let dir = tempfile::tempdir().unwrap();
+    // Every camera held sideways the same way, the rig file without mounts (as most formats
+    // are): the cameras' own estimate of the up lies on its side.
+    let mut spec = SceneSpec::preset("signer-3cam").unwrap();
+    spec.frames = 1;
+    spec.cameras.mount_quarter_turns = vec![1, 1, 1];
+    let rec = dir.path().join("sideways");
+    write_recording(&Renderer::new(&spec).unwrap(), &rec, 1).unwrap();
+    let rig_path = rec.join("rig.toml");
+    let rig = std::fs::read_to_string(&rig_path).unwrap();
+    let unmounted: Vec<&str> = rig.lines().filter(|l| !l.starts_with("mount_quarter_turns")).collect();
+    std::fs::write(&rig_path, unmounted.join("\n")).unwrap();
+    let estimate = stdout(&handflow(&["rig", "show", rig_path.to_str().unwrap()]));
+    assert!(!estimate.contains("world up: [0.0000, 1.0000, 0.0000]"), "the file alone:\n{estimate}");
+
+    let text = stdout(&handflow(&["rig", "show", rec.to_str().unwrap()]));
+    assert!(text.contains("world up: [0.0000, 1.0000, 0.0000] (configured)"), "{text}");
+    assert!(text.contains("from the faces the views see"), "{text}");
+    assert_eq!(text.matches("mount quarter turns: 1").count(), 3, "{text}");
+}

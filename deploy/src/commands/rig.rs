@@ -55,10 +55,18 @@ pub fn run(command: &RigCommand) -> Result<()> {
 fn load(path: &Path) -> Result<(Rig, String)> {
     if path.is_dir() {
         let files = Rig::find_in_dir(path)?;
-        let rig = match files.as_slice() {
+        let mut rig = match files.as_slice() {
             [one] => Rig::load(one)?,
             several => Rig::load_files(several)?,
         };
+        // A recording's rig as `track` takes it: its up from the faces where they overrule the
+        // cameras' estimate. A folder whose recording does not open shows its calibration.
+        if let Ok(rec) = handflow_ingest::Recording::open(path) {
+            if let Some(found) = crate::face_up::face_up(&rec, rec.rig())? {
+                rig.set_up(found.direction)?;
+                rig.notes.push(found.summary());
+            }
+        }
         let names: Vec<String> = files.iter().map(|f| f.display().to_string()).collect();
         let format = files.first().map_or(Ok(None), |f| format_of(f).map(Some))?;
         let format = format.map_or_else(String::new, |f| format!("{f}: "));
