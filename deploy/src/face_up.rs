@@ -93,30 +93,30 @@ pub fn face_up(rec: &Recording, rig: &Rig) -> Result<Option<FaceUp>> {
         })
         .map_err(anyhow::Error::msg)
     };
-    let mount = |k: usize| cameras[k].mount_quarter_turns % 4;
-    let mut turns: Vec<Option<u8>> =
-        (0..cameras.len()).into_par_iter().map(|k| face_turn(k, &[mount(k)])).collect::<Result<_>>()?;
-    for pass in 0..2 {
+    // `Some(verdict)` once views agree on an up: the faces' up, or `None` where it confirms
+    // the estimate.
+    let verdict = |turns: &[Option<u8>]| {
         let ups: Vec<(String, u8, Vector3<f64>)> = cameras
             .iter()
-            .zip(&turns)
+            .zip(turns)
             .filter_map(|(camera, t)| t.map(|t| (camera.name.clone(), t, upright_up(camera, t))))
             .collect();
-        if let Some(agreed) = agreeing(&ups) {
-            return Ok(decide(agreed, estimate).map(|found| refined(rig, found)));
-        }
-        if pass == 0 {
-            let others: Vec<Option<u8>> = (0..cameras.len())
-                .into_par_iter()
-                .map(|k| match turns[k] {
-                    Some(t) => Ok(Some(t)),
-                    None => face_turn(k, &[(mount(k) + 1) % 4, (mount(k) + 3) % 4, (mount(k) + 2) % 4]),
-                })
-                .collect::<Result<_>>()?;
-            turns = others;
-        }
+        agreeing(&ups).map(|agreed| decide(agreed, estimate).map(|found| refined(rig, found)))
+    };
+    let mount = |k: usize| cameras[k].mount_quarter_turns % 4;
+    let at_mounts: Vec<Option<u8>> =
+        (0..cameras.len()).into_par_iter().map(|k| face_turn(k, &[mount(k)])).collect::<Result<_>>()?;
+    if let Some(found) = verdict(&at_mounts) {
+        return Ok(found);
     }
-    Ok(None)
+    let at_any: Vec<Option<u8>> = (0..cameras.len())
+        .into_par_iter()
+        .map(|k| match at_mounts[k] {
+            Some(t) => Ok(Some(t)),
+            None => face_turn(k, &[(mount(k) + 1) % 4, (mount(k) + 3) % 4, (mount(k) + 2) % 4]),
+        })
+        .collect::<Result<_>>()?;
+    Ok(verdict(&at_any).flatten())
 }
 
 /// `found` with its direction estimated again from every camera's image up once each is
@@ -125,14 +125,10 @@ pub fn face_up(rec: &Recording, rig: &Rig) -> Result<Option<FaceUp>> {
 /// precisely where up is. Kept as the faces gave it if the two differ by more than
 /// [`AGREEMENT_DEG`].
 fn refined(rig: &Rig, mut found: FaceUp) -> FaceUp {
-    let mut turned = rig.clone();
-    if turned.set_up(found.direction).is_err() {
-        return found;
-    }
-    turned.declared_up = None;
-    let direction = turned.world_up().direction;
-    if direction.dot(&found.direction) >= AGREEMENT_DEG.to_radians().cos() {
-        found.direction = direction;
+    if let Ok(estimate) = rig.estimate_up_under(found.direction) {
+        if estimate.direction.dot(&found.direction) >= AGREEMENT_DEG.to_radians().cos() {
+            found.direction = estimate.direction;
+        }
     }
     found
 }

@@ -268,6 +268,10 @@ fn mounts_inferred_under_a_wrong_estimate_are_judged_again_once_the_up_is_declar
     rig.infer_mounts();
     assert!(rig.world_up().direction.dot(&up).abs() < 0.5, "the estimate lies on its side");
     assert_eq!(rig.cameras.iter().map(|c| c.mount_quarter_turns).collect::<Vec<_>>(), vec![0, 0, 2]);
+    // Judged under a rough up, the cameras turned so give it back precisely, changing nothing.
+    let rough = Vector3::new(0.2, 0.95, 0.1);
+    assert_eq!(rig.estimate_up_under(rough).expect("valid up").direction, up);
+    assert_eq!(rig.cameras.iter().map(|c| c.mount_quarter_turns).collect::<Vec<_>>(), vec![0, 0, 2]);
     // Told where up is, every mount the file did not record is judged again, the inferred
     // one included.
     rig.set_up(up).expect("valid up");

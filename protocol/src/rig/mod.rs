@@ -278,6 +278,17 @@ impl Rig {
         Ok(())
     }
 
+    /// The cameras' estimate of the world's up (as [`Rig::world_up`] makes it without a
+    /// declared up) once every mount the file did not record is judged under `rough`, as
+    /// [`Rig::set_up`] would judge it: a rough up picks the mounts, the calibrated rotations
+    /// say precisely where up is. Changes and logs nothing; errors as [`Rig::set_up`] does.
+    pub fn estimate_up_under(&self, rough: nalgebra::Vector3<f64>) -> Result<WorldUp, RigError> {
+        let declared = WorldUp::declared(rough, UpSource::Configured)?;
+        let (mut cameras, mut inferred) = (self.cameras.clone(), self.mounts_inferred.clone());
+        up::infer_mounts(&mut cameras, &mut inferred, &declared);
+        Ok(up::estimate(&cameras))
+    }
+
     /// Sets each camera's [`Camera::mount_quarter_turns`] from the geometry where the file
     /// did not record one (most formats cannot: Pose2Sim's, anipose's, OpenCV's; a recorded
     /// mount is kept, one inferred before is judged again): the quarter turns that bring the

@@ -287,8 +287,7 @@ impl ClusterStage {
             }
             tracing::trace!(t, assigned = ?self.tracker.assigned(), "clusters measuring the tracks");
         }
-        // The head's skin is its face, a shallow cap of a nearly round object: its depth spread
-        // says little about its size, so its centre comes from the spread across the view.
+        // The head's centre from its skin and the pieces EM split off it ([`head_centre`]).
         if let (Some(fit), Some(raw), true) = (&fit, &raw, self.centre_correction) {
             if let (State::Tracked, Some(m)) = (tracks[0].state, self.tracker.assigned()[0]) {
                 let hands = [1, 2].map(|k| self.tracker.assigned()[k].map(|h| h.cluster));
