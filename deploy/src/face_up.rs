@@ -43,6 +43,8 @@ pub struct FaceUp {
     pub views: Vec<(String, u8)>,
     /// The cameras' own estimate the faces overrule.
     pub estimate: Vector3<f64>,
+    /// Number of the frame whose faces gave it.
+    pub frame: u64,
 }
 
 impl FaceUp {
@@ -50,9 +52,11 @@ impl FaceUp {
     pub fn summary(&self) -> String {
         let views: Vec<String> = self.views.iter().map(|(name, turns)| format!("`{name}` at {turns}")).collect();
         format!(
-            "world up {:?} from the faces the views see (upright at clockwise quarter turns {}), not the cameras' \
-             estimate {:?}, {:.0}° from it: the calibration records no up and most cameras seem mounted sideways",
+            "world up {:?} from the faces the views see in frame {} (upright at clockwise quarter turns {}), not the \
+             cameras' estimate {:?}, {:.0}° from it: the calibration records no up and most cameras seem mounted \
+             sideways",
             self.direction.as_slice(),
+            self.frame,
             views.join(", "),
             self.estimate.as_slice(),
             self.direction.dot(&self.estimate).clamp(-1.0, 1.0).acos().to_degrees(),
@@ -60,24 +64,60 @@ impl FaceUp {
     }
 }
 
-/// The world's up the faces in the recording's first frame set give, when the rig states
+/// Seconds into the recording of the frame sets searched for faces, in turn, until views
+/// agree: a person may walk into the views, or turn to the cameras, after the recording
+/// starts. A recording in which no two views ever agree costs every search (four turns per
+/// view at each), so they are few.
+pub const PROBE_SECONDS: [f64; 3] = [0.0, 1.0, 2.0];
+
+/// The world's up the faces in the recording's first frame sets give, when the rig states
 /// none and it differs from the cameras' estimate by more than [`DISAGREEMENT_DEG`]; `None`
-/// when the faces confirm the estimate, say nothing (no face, or too few views agree) or
-/// the rig states its up. Every view is searched at its mount's turn first (views in
-/// parallel: an upright rig costs one search per view), then those that showed no face at
-/// the other three. A first frame set that cannot be read is a warning, and the estimate
-/// stands.
+/// when the faces confirm the estimate, say nothing (no face, or too few views agree, in
+/// every frame set of [`PROBE_SECONDS`]) or the rig states its up. In each frame set every
+/// view is searched at its mount's turn first (views in parallel: an upright rig costs one
+/// search per view), then those that showed no face at the other three. A frame set that
+/// cannot be read is a warning, and the next is searched.
 pub fn face_up(rec: &Recording, rig: &Rig) -> Result<Option<FaceUp>> {
     if rig.declared_up.is_some() || rig.cameras.len() < AGREEING_VIEWS || rec.is_empty() {
         return Ok(None);
     }
-    let estimate = rig.world_up().direction;
     let mut frame_set = vec![0u8; rec.frame_set_len()];
-    if let Err(e) = rec.read_frame_into(0, false, &mut frame_set) {
-        tracing::warn!("the world's up was not checked against the faces: {e}");
-        return Ok(None);
+    for index in probe_indices(rec.len(), rec.frame_rate()) {
+        let frame = match rec.read_frame_into(index as u64, false, &mut frame_set) {
+            Ok(info) => info.frame,
+            Err(e) => {
+                tracing::warn!("frame set {index} was not searched for the faces' up: {e}");
+                continue;
+            }
+        };
+        if let Some(verdict) = face_up_in(rec, rig, &frame_set, frame)? {
+            return Ok(verdict);
+        }
+        tracing::debug!("frame {frame}: too few views agree on the faces' up");
     }
-    let views = rec.views(&frame_set);
+    Ok(None)
+}
+
+/// Indices of the frame sets at [`PROBE_SECONDS`] in a recording of `len` sets at `fps`:
+/// clamped to its last set, each once.
+fn probe_indices(len: usize, fps: f64) -> Vec<usize> {
+    let mut indices: Vec<usize> = Vec::new();
+    for seconds in PROBE_SECONDS {
+        let at = if fps.is_finite() && fps > 0.0 { (seconds * fps).round() as usize } else { 0 };
+        let at = at.min(len.saturating_sub(1));
+        if !indices.contains(&at) {
+            indices.push(at);
+        }
+    }
+    indices
+}
+
+/// What the faces in one frame set (`frame_set`, frame number `frame`) say: `Some(verdict)`
+/// once views agree on an up (the faces' up, or `None` where it confirms the cameras'
+/// estimate), `None` when too few views agree.
+fn face_up_in(rec: &Recording, rig: &Rig, frame_set: &[u8], frame: u64) -> Result<Option<Option<FaceUp>>> {
+    let estimate = rig.world_up().direction;
+    let views = rec.views(frame_set);
     let cameras = &rig.cameras[..views.len()];
     // The first of `turns` at which view `k` shows a face.
     let face_turn = |k: usize, turns: &[u8]| -> Result<Option<u8>> {
@@ -93,21 +133,19 @@ pub fn face_up(rec: &Recording, rig: &Rig) -> Result<Option<FaceUp>> {
         })
         .map_err(anyhow::Error::msg)
     };
-    // `Some(verdict)` once views agree on an up: the faces' up, or `None` where it confirms
-    // the estimate.
     let verdict = |turns: &[Option<u8>]| {
         let ups: Vec<(String, u8, Vector3<f64>)> = cameras
             .iter()
             .zip(turns)
             .filter_map(|(camera, t)| t.map(|t| (camera.name.clone(), t, upright_up(camera, t))))
             .collect();
-        agreeing(&ups).map(|agreed| decide(agreed, estimate).map(|found| refined(rig, found)))
+        agreeing(&ups).map(|agreed| decide(agreed, estimate, frame).map(|found| refined(rig, found)))
     };
     let mount = |k: usize| cameras[k].mount_quarter_turns % 4;
     let at_mounts: Vec<Option<u8>> =
         (0..cameras.len()).into_par_iter().map(|k| face_turn(k, &[mount(k)])).collect::<Result<_>>()?;
     if let Some(found) = verdict(&at_mounts) {
-        return Ok(found);
+        return Ok(Some(found));
     }
     let at_any: Vec<Option<u8>> = (0..cameras.len())
         .into_par_iter()
@@ -116,7 +154,7 @@ pub fn face_up(rec: &Recording, rig: &Rig) -> Result<Option<FaceUp>> {
             None => face_turn(k, &[(mount(k) + 1) % 4, (mount(k) + 3) % 4, (mount(k) + 2) % 4]),
         })
         .collect::<Result<_>>()?;
-    Ok(verdict(&at_any).flatten())
+    Ok(verdict(&at_any))
 }
 
 /// `found` with its direction estimated again from every camera's image up once each is
@@ -149,12 +187,12 @@ fn agreeing(ups: &[(String, u8, Vector3<f64>)]) -> Option<Vec<&(String, u8, Vect
 }
 
 /// The agreeing views' mean up, kept only where it overrules `estimate`.
-fn decide(agreed: Vec<&(String, u8, Vector3<f64>)>, estimate: Vector3<f64>) -> Option<FaceUp> {
+fn decide(agreed: Vec<&(String, u8, Vector3<f64>)>, estimate: Vector3<f64>, frame: u64) -> Option<FaceUp> {
     let direction = agreed.iter().map(|v| v.2).sum::<Vector3<f64>>().try_normalize(1e-9)?;
     if direction.dot(&estimate) >= DISAGREEMENT_DEG.to_radians().cos() {
         return None;
     }
-    Some(FaceUp { direction, views: agreed.iter().map(|v| (v.0.clone(), v.1)).collect(), estimate })
+    Some(FaceUp { direction, views: agreed.iter().map(|v| (v.0.clone(), v.1)).collect(), estimate, frame })
 }
 
 #[cfg(test)]
@@ -199,11 +237,22 @@ mod tests {
         ];
         let agreed = agreeing(&ups).expect("a and c agree");
         assert_eq!(agreed.iter().map(|v| v.0.as_str()).collect::<Vec<_>>(), ["a", "c"]);
-        let found = decide(agreed.clone(), Vector3::x()).expect("90 degrees off: overruled");
+        let found = decide(agreed.clone(), Vector3::x(), 7).expect("90 degrees off: overruled");
         assert!(found.direction.dot(&Vector3::y()) > 0.99, "{:?}", found.direction);
         assert_eq!(found.views, [("a".to_owned(), 1), ("c".to_owned(), 1)]);
+        assert!(found.summary().contains("in frame 7"), "{}", found.summary());
         let tilted = Vector3::new(0.0, 0.94, 0.34).normalize();
-        assert_eq!(decide(agreed, tilted), None, "20 degrees off: the estimate stands");
+        assert_eq!(decide(agreed, tilted, 7), None, "20 degrees off: the estimate stands");
         assert!(agreeing(&ups[..2]).is_none(), "one view alone says nothing");
+    }
+
+    #[test]
+    fn later_frame_sets_are_searched_at_whole_seconds_within_the_recording() {
+        assert_eq!(probe_indices(300, 30.0), [0, 30, 60]);
+        assert_eq!(probe_indices(111, 6.0), [0, 6, 12]);
+        assert_eq!(probe_indices(40, 30.0), [0, 30, 39], "clamped to the last set");
+        assert_eq!(probe_indices(3, 30.0), [0, 2]);
+        assert_eq!(probe_indices(1, 30.0), [0]);
+        assert_eq!(probe_indices(10, f64::NAN), [0], "no rate: the first set only");
     }
 }

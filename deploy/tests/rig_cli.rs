@@ -102,3 +102,28 @@ fn rig_show_on_a_recording_mostly_mounted_sideways_gives_the_up_its_faces_show()
     assert!(text.contains("from the faces the views see"), "{text}");
     assert_eq!(text.matches("mount quarter turns: 1").count(), 3, "{text}");
 }
+
+#[test]
+fn the_faces_up_comes_from_a_later_frame_set_when_the_first_shows_no_face() {
+    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
+    let dir = tempfile::tempdir().unwrap();
+    // The sideways rig without mounts, whose first frame set shows no one (a lens cap, a
+    // person not yet in the views): every view of frame 0 a flat grey.
+    let mut spec = SceneSpec::preset("signer-3cam").unwrap();
+    spec.frames = 3;
+    spec.cameras.mount_quarter_turns = vec![1, 1, 1];
+    let rec = dir.path().join("late");
+    write_recording(&Renderer::new(&spec).unwrap(), &rec, 3).unwrap();
+    let rig_path = rec.join("rig.toml");
+    let rig = std::fs::read_to_string(&rig_path).unwrap();
+    let unmounted: Vec<&str> = rig.lines().filter(|l| !l.starts_with("mount_quarter_turns")).collect();
+    std::fs::write(&rig_path, unmounted.join("\n")).unwrap();
+    for cam in ["cam0", "cam1", "cam2"] {
+        let first = rec.join(cam).join("000000.png");
+        let (w, h) = image::image_dimensions(&first).unwrap();
+        image::RgbImage::from_pixel(w, h, image::Rgb([96, 96, 96])).save(&first).unwrap();
+    }
+    let text = stdout(&handflow(&["rig", "show", rec.to_str().unwrap()]));
+    assert!(text.contains("world up: [0.0000, 1.0000, 0.0000] (configured)"), "{text}");
+    assert!(text.contains("from the faces the views see in frame 2"), "{text}");
+}
