@@ -1517,12 +1517,15 @@ fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
     );
     for (name, o) in [("head", &s.head), ("left_hand", &s.left_hand), ("right_hand", &s.right_hand)] {
         out!(
-            "  {name:<11} agreement {:6.1} %  rms {:.3} / {:.3} palm widths (x / y)  3D rmse {:.3} m  misses {}",
+            "  {name:<11} agreement {:6.1} %  rms {:.3} / {:.3} palm widths (x / y)  3D rmse {:.3} m  misses {}  \
+             velocity rmse {:.3} m/s, gain {:.2}",
             o.agreement * 100.0,
             o.rms_palm_x,
             o.rms_palm_y,
             o.rmse_3d_m,
-            o.misses
+            o.misses,
+            o.rmse_velocity_m_s,
+            o.velocity_gain
         );
     }
     Ok(())

@@ -1,7 +1,9 @@
 //! `handflow eval tracks`: trajectories against a recording's ground truth, as in
 //! EVALUATION.md section 2: per object the agreement rate (projection within a third of a
 //! palm width of the true position in every view that sees it), RMS image distance in palm
-//! widths (X and Y), 3D RMS error, and identity switches. A `lost` estimate is a miss, as
+//! widths (X and Y), 3D RMS error, and identity switches; and of the published velocity (what
+//! 2D keypoint pipelines do not give), its RMS error and the share of the true velocity it
+//! carries. A `lost` estimate is a miss, as
 //! against a reference tracker (section 2b): it never agrees, and the RMS figures are over
 //! the frames with an estimate (a lost track's published position is a placeholder, and an
 //! error measured from it would say where the world's origin is, not how far off the track
@@ -37,6 +39,13 @@ pub struct ObjectScores {
     /// RMS 3D distance over the frames with an estimate, metres (`NaN`, `null` in JSON,
     /// when every frame is a miss).
     pub rmse_3d_m: f64,
+    /// RMS error of the published velocity over the frames with an estimate, metres per
+    /// second (`null` without an estimate, or a truth that gives no velocity).
+    pub rmse_velocity_m_s: f64,
+    /// Share of the true velocity the published one carries: the least-squares gain `g` of
+    /// `published ~ g x true` over the same frames (1 unbiased, below 1 shrunk towards rest;
+    /// `null` when the object never moves).
+    pub velocity_gain: f64,
     /// Frames scored (the object is visible in at least one view).
     pub frames: usize,
     /// Scored frames whose estimate is `lost`: they count against `agreement`.
@@ -73,6 +82,9 @@ struct TruthFrame {
 #[derive(Deserialize)]
 struct TruthObject {
     pos: [f64; 3],
+    /// Metres per second; older recordings' truth has none.
+    #[serde(default)]
+    vel: Option<[f64; 3]>,
     pixel: Vec<Option<[f64; 2]>>,
     visible: Vec<bool>,
 }
@@ -87,6 +99,11 @@ struct Sums {
     e2: f64,
     measured: usize,
     misses: usize,
+    /// Velocity: squared error, estimate . truth and truth . truth summed, and the frames.
+    ve2: f64,
+    v_cross: f64,
+    v_true2: f64,
+    v_measured: usize,
 }
 
 /// Reads a trajectory file (JSON Lines), naming the line of any error.
@@ -173,6 +190,13 @@ fn score_tracks(
                 } else {
                     sums[k].e2 += (p - Point3::from(truth.pos)).norm_squared();
                     sums[k].measured += 1;
+                    if let Some(true_vel) = truth.vel {
+                        let (e, t) = (nalgebra::Vector3::from(est.vel), nalgebra::Vector3::from(true_vel));
+                        sums[k].ve2 += (e - t).norm_squared();
+                        sums[k].v_cross += e.dot(&t);
+                        sums[k].v_true2 += t.norm_squared();
+                        sums[k].v_measured += 1;
+                    }
                 }
             }
         }
@@ -191,6 +215,8 @@ fn score_tracks(
         rms_palm_x: (s.dx2 / s.views.max(1) as f64).sqrt(),
         rms_palm_y: (s.dy2 / s.views.max(1) as f64).sqrt(),
         rmse_3d_m: if s.measured == 0 { f64::NAN } else { (s.e2 / s.measured as f64).sqrt() },
+        rmse_velocity_m_s: if s.v_measured == 0 { f64::NAN } else { (s.ve2 / s.v_measured as f64).sqrt() },
+        velocity_gain: if s.v_true2 > 0.0 { s.v_cross / s.v_true2 } else { f64::NAN },
         frames: s.frames,
         misses: s.misses,
     };
@@ -233,20 +259,26 @@ mod tests {
             .zip(TRUE)
             .map(|(name, pos)| {
                 let pixel = cameras.iter().map(|c| c.project(&Point3::from(pos)).map(|q| [q.x, q.y])).collect();
-                ((*name).to_owned(), TruthObject { pos, pixel, visible: vec![true; cameras.len()] })
+                let vel = Some([0.4, 0.0, 0.0]);
+                ((*name).to_owned(), TruthObject { pos, vel, pixel, visible: vec![true; cameras.len()] })
             })
             .collect();
         TruthFrame { frame, objects }
     }
 
     fn record(frame: u64, objects: [([f64; 3], TrackState); 3]) -> TrajectoryRecord {
+        record_moving(frame, objects, [0.0; 3])
+    }
+
+    /// A record whose every object is published with velocity `vel`.
+    fn record_moving(frame: u64, objects: [([f64; 3], TrackState); 3], vel: [f64; 3]) -> TrajectoryRecord {
         TrajectoryRecord {
             frame,
             t: frame as f64 / 30.0,
             objects: OBJECTS
                 .iter()
                 .zip(objects)
-                .map(|(n, (pos, state))| ((*n).to_owned(), ObjectSample { pos, vel: [0.0; 3], confidence: 1.0, state }))
+                .map(|(n, (pos, state))| ((*n).to_owned(), ObjectSample { pos, vel, confidence: 1.0, state }))
                 .collect(),
             dropped_frames: 0,
             missing_views: 0,
@@ -281,6 +313,40 @@ mod tests {
             (0..4).map(|f| record(f, [tracked(0, 0.0), ([0.0; 3], TrackState::Lost), tracked(2, 0.0)])).collect();
         let s = score_tracks(&rig.cameras, &truth, &lost, Path::new("truth.json")).expect("scores");
         assert!(s.left_hand.rmse_3d_m.is_nan() && s.left_hand.agreement == 0.0, "{s:?}");
+    }
+
+    #[test]
+    fn the_velocity_is_scored_by_its_error_and_the_share_of_the_truth_it_carries() {
+        let rig = rig3();
+        // Every object truly moves at 0.4 m/s along x.
+        let truth: Vec<TruthFrame> = (0..4).map(|f| truth_frame(&rig.cameras, f)).collect();
+        let at = |k: usize| (TRUE[k], TrackState::Tracked);
+        // Published at three quarters of the speed, and 0.1 m/s upwards besides.
+        let records: Vec<TrajectoryRecord> =
+            (0..4).map(|f| record_moving(f, [at(0), at(1), at(2)], [0.3, 0.1, 0.0])).collect();
+        let s = score_tracks(&rig.cameras, &truth, &records, Path::new("truth.json")).expect("scores");
+        for o in [&s.head, &s.left_hand, &s.right_hand] {
+            assert!((o.rmse_velocity_m_s - 0.02f64.sqrt()).abs() < 1e-12, "{o:?}");
+            assert!((o.velocity_gain - 0.75).abs() < 1e-12, "{o:?}");
+        }
+        // Lost frames say nothing of the velocity; an exact one scores zero and a gain of one.
+        let records: Vec<TrajectoryRecord> = (0..4)
+            .map(|f| {
+                let left = if f < 2 { ([0.0; 3], TrackState::Lost) } else { at(1) };
+                record_moving(f, [at(0), left, at(2)], [0.4, 0.0, 0.0])
+            })
+            .collect();
+        let s = score_tracks(&rig.cameras, &truth, &records, Path::new("truth.json")).expect("scores");
+        assert!(s.left_hand.rmse_velocity_m_s.abs() < 1e-12 && (s.left_hand.velocity_gain - 1.0).abs() < 1e-12);
+        // A truth without velocities leaves both unscored.
+        let mut still = truth;
+        for frame in &mut still {
+            for object in frame.objects.values_mut() {
+                object.vel = None;
+            }
+        }
+        let s = score_tracks(&rig.cameras, &still, &records, Path::new("truth.json")).expect("scores");
+        assert!(s.head.rmse_velocity_m_s.is_nan() && s.head.velocity_gain.is_nan(), "{s:?}");
     }
 
     #[test]
