@@ -3,7 +3,8 @@
 //!
 //! [`em`] fits a mixture of full-covariance Gaussians by expectation maximisation to a
 //! frame's weighted scene points; [`tracks`] labels the clusters as head, left hand and
-//! right hand and predicts them with a constant-velocity model.
+//! right hand and predicts them with a constant-velocity model; [`velocity`] fuses a track's
+//! velocity with its published positions' motion into the velocity it is published with.
 
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
@@ -11,6 +12,7 @@ pub mod em;
 pub mod hand;
 pub mod stage;
 pub mod tracks;
+pub mod velocity;
 
 use nalgebra::{Matrix6, Vector3, Vector6};
 

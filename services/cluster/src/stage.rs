@@ -11,6 +11,7 @@ use nalgebra::{Matrix3, Point3, Vector3};
 use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, side_extremity, Component, EmConfig, EmFit};
 use crate::hand::{continuity_weight, locate_hand};
 use crate::tracks::{HeadAnchor, Measurement, NotStarted, State, Tracker, TrackerConfig};
+use crate::velocity::{VelocityFilter, HAND_ACCELERATION_DENSITY, HEAD_ACCELERATION_DENSITY, REFERENCE_INTERVAL_S};
 use crate::WeightedPoint;
 
 /// The largest half-thickness the centre correction assumes for a hand, metres: an adult
@@ -115,6 +116,8 @@ pub struct ClusterStage {
     /// What was last reported about the tracks' start (see [`ClusterStage::start_status`]),
     /// so that it is logged once per change, not once per frame.
     reported: Option<StartStatus>,
+    /// Per object, the velocity it is published with ([`VelocityFilter`]).
+    velocities: [VelocityFilter; 3],
 }
 
 /// Whether the tracks run, and if not why, as [`ClusterStage::start_status`] gives it.
@@ -173,6 +176,8 @@ impl ClusterStage {
             last_fit: None,
             last_points: 0,
             reported: None,
+            velocities: [HEAD_ACCELERATION_DENSITY, HAND_ACCELERATION_DENSITY, HAND_ACCELERATION_DENSITY]
+                .map(VelocityFilter::new),
         }
     }
 
@@ -331,15 +336,24 @@ impl ClusterStage {
         }
         let total: f64 = self.points.iter().map(|p| p.weight).sum();
         let assigned = self.tracker.assigned();
+        let nominal_dt = if fps.is_finite() && fps > 0.0 { 1.0 / fps } else { REFERENCE_INTERVAL_S };
         let estimates = std::array::from_fn(|k| {
             let track = tracks[k];
+            // Published with the flow's velocity fused with the published positions' motion;
+            // the tracker keeps its own for its predictions.
+            let velocity = if track.state == State::Lost {
+                self.velocities[k].reset();
+                track.velocity
+            } else {
+                self.velocities[k].update(t, track.position, track.velocity, nominal_dt)
+            };
             let mass = match (assigned[k], &fit) {
                 (Some(m), Some(fit)) if total > 0.0 => fit.components[m.cluster].mass / total,
                 _ => 0.0,
             };
             ObjectEstimate {
                 position: track.position,
-                velocity: track.velocity,
+                velocity,
                 confidence: track.confidence,
                 state: track.state,
                 mass,
