@@ -79,21 +79,28 @@ fn rig_convert_writes_our_toml_of_the_same_rig() {
     }
 }
 
-#[test]
-fn rig_show_on_a_recording_mostly_mounted_sideways_gives_the_up_its_faces_show() {
+/// `signer-3cam` rendered for `frames` frames into `dir/name` with every camera held sideways
+/// the same way, its rig file without mounts (as most formats are): the cameras' own estimate
+/// of the up lies on its side.
+fn sideways_recording_without_mounts(dir: &Path, name: &str, frames: u32) -> PathBuf {
     use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
-    let dir = tempfile::tempdir().unwrap();
-    // Every camera held sideways the same way, the rig file without mounts (as most formats
-    // are): the cameras' own estimate of the up lies on its side.
     let mut spec = SceneSpec::preset("signer-3cam").unwrap();
-    spec.frames = 1;
+    spec.frames = frames;
     spec.cameras.mount_quarter_turns = vec![1, 1, 1];
-    let rec = dir.path().join("sideways");
-    write_recording(&Renderer::new(&spec).unwrap(), &rec, 1).unwrap();
+    let rec = dir.join(name);
+    write_recording(&Renderer::new(&spec).unwrap(), &rec, frames).unwrap();
     let rig_path = rec.join("rig.toml");
     let rig = std::fs::read_to_string(&rig_path).unwrap();
     let unmounted: Vec<&str> = rig.lines().filter(|l| !l.starts_with("mount_quarter_turns")).collect();
     std::fs::write(&rig_path, unmounted.join("\n")).unwrap();
+    rec
+}
+
+#[test]
+fn rig_show_on_a_recording_mostly_mounted_sideways_gives_the_up_its_faces_show() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = sideways_recording_without_mounts(dir.path(), "sideways", 1);
+    let rig_path = rec.join("rig.toml");
     let estimate = stdout(&handflow(&["rig", "show", rig_path.to_str().unwrap()]));
     assert!(!estimate.contains("world up: [0.0000, 1.0000, 0.0000]"), "the file alone:\n{estimate}");
 
@@ -105,19 +112,10 @@ fn rig_show_on_a_recording_mostly_mounted_sideways_gives_the_up_its_faces_show()
 
 #[test]
 fn the_faces_up_comes_from_a_later_frame_set_when_the_first_shows_no_face() {
-    use handflow_ingest::synthetic::{write_recording, Renderer, SceneSpec};
     let dir = tempfile::tempdir().unwrap();
-    // The sideways rig without mounts, whose first frame set shows no one (a lens cap, a
-    // person not yet in the views): every view of frame 0 a flat grey.
-    let mut spec = SceneSpec::preset("signer-3cam").unwrap();
-    spec.frames = 3;
-    spec.cameras.mount_quarter_turns = vec![1, 1, 1];
-    let rec = dir.path().join("late");
-    write_recording(&Renderer::new(&spec).unwrap(), &rec, 3).unwrap();
-    let rig_path = rec.join("rig.toml");
-    let rig = std::fs::read_to_string(&rig_path).unwrap();
-    let unmounted: Vec<&str> = rig.lines().filter(|l| !l.starts_with("mount_quarter_turns")).collect();
-    std::fs::write(&rig_path, unmounted.join("\n")).unwrap();
+    // Its first frame set shows no one (a lens cap, a person not yet in the views): every
+    // view of frame 0 a flat grey.
+    let rec = sideways_recording_without_mounts(dir.path(), "late", 3);
     for cam in ["cam0", "cam1", "cam2"] {
         let first = rec.join(cam).join("000000.png");
         let (w, h) = image::image_dimensions(&first).unwrap();
