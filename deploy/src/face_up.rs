@@ -81,6 +81,7 @@ pub fn face_up(rec: &Recording, rig: &Rig) -> Result<Option<FaceUp>> {
     if rig.declared_up.is_some() || rig.cameras.len() < AGREEING_VIEWS || rec.is_empty() {
         return Ok(None);
     }
+    let estimate = rig.world_up().direction;
     let mut frame_set = vec![0u8; rec.frame_set_len()];
     for index in probe_indices(rec.len(), rec.frame_rate()) {
         let frame = match rec.read_frame_into(index as u64, false, &mut frame_set) {
@@ -90,7 +91,7 @@ pub fn face_up(rec: &Recording, rig: &Rig) -> Result<Option<FaceUp>> {
                 continue;
             }
         };
-        if let Some(verdict) = face_up_in(rec, rig, &frame_set, frame)? {
+        if let Some(verdict) = face_up_in(rec, rig, estimate, &frame_set, frame)? {
             return Ok(verdict);
         }
         tracing::debug!("frame {frame}: too few views agree on the faces' up");
@@ -114,9 +115,14 @@ fn probe_indices(len: usize, fps: f64) -> Vec<usize> {
 
 /// What the faces in one frame set (`frame_set`, frame number `frame`) say: `Some(verdict)`
 /// once views agree on an up (the faces' up, or `None` where it confirms the cameras'
-/// estimate), `None` when too few views agree.
-fn face_up_in(rec: &Recording, rig: &Rig, frame_set: &[u8], frame: u64) -> Result<Option<Option<FaceUp>>> {
-    let estimate = rig.world_up().direction;
+/// `estimate`), `None` when too few views agree.
+fn face_up_in(
+    rec: &Recording,
+    rig: &Rig,
+    estimate: Vector3<f64>,
+    frame_set: &[u8],
+    frame: u64,
+) -> Result<Option<Option<FaceUp>>> {
     let views = rec.views(frame_set);
     let cameras = &rig.cameras[..views.len()];
     // The first of `turns` at which view `k` shows a face.

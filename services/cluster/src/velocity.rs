@@ -11,7 +11,7 @@
 //! they stay as they were or improve a little. The tracker's own velocity, which predicts
 //! the next frame's clusters, is left as it is: the positions do not change.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix2, Vector2, Vector3};
 
 /// Frame interval at which the flow's velocity is off by [`FLOW_VELOCITY_STD_M_S`], seconds.
 pub const REFERENCE_INTERVAL_S: f64 = 1.0 / 30.0;
@@ -46,7 +46,7 @@ struct State {
     velocity: Vector3<f64>,
     /// Covariance of (position, velocity) along one axis; the axes share it (their noises
     /// are alike and independent).
-    cov: [[f64; 2]; 2],
+    cov: Matrix2<f64>,
 }
 
 /// One object's published velocity.
@@ -84,40 +84,28 @@ impl VelocityFilter {
                 t,
                 position,
                 velocity,
-                cov: [[POSITION_STD_M * POSITION_STD_M, 0.0], [0.0, sv * sv]],
+                cov: Matrix2::from_diagonal(&Vector2::new(POSITION_STD_M.powi(2), sv * sv)),
             });
             return velocity;
         };
         let dt = t - s.t;
         let q = self.acceleration_density;
-        // Predict: x' = F x, P' = F P F^T + Q with F = [1 dt; 0 1].
-        let [[a, b], [_, d]] = s.cov;
-        let mut p = [
-            [a + 2.0 * b * dt + d * dt * dt + q * dt.powi(3) / 3.0, b + d * dt + q * dt * dt / 2.0],
-            [0.0, d + q * dt],
-        ];
-        p[1][0] = p[0][1];
+        // Predict: x' = F x, P' = F P F^T + Q (white-noise acceleration).
+        let f = Matrix2::new(1.0, dt, 0.0, 1.0);
+        let noise = Matrix2::new(dt.powi(3) / 3.0, dt * dt / 2.0, dt * dt / 2.0, dt) * q;
+        let p = f * s.cov * f.transpose() + noise;
         let predicted_position = s.position + s.velocity * dt;
         // Update with both measurements: K = P (P + R)^-1, R = diag(position, flow velocity).
-        let sv = flow_velocity_std(dt);
-        let r = [POSITION_STD_M * POSITION_STD_M, sv * sv];
-        let (s00, s01, s11) = (p[0][0] + r[0], p[0][1], p[1][1] + r[1]);
-        let det = s00 * s11 - s01 * s01;
-        let inv = [[s11 / det, -s01 / det], [-s01 / det, s00 / det]];
-        let k = [
-            [p[0][0] * inv[0][0] + p[0][1] * inv[1][0], p[0][0] * inv[0][1] + p[0][1] * inv[1][1]],
-            [p[1][0] * inv[0][0] + p[1][1] * inv[1][0], p[1][0] * inv[0][1] + p[1][1] * inv[1][1]],
-        ];
+        let r = Matrix2::from_diagonal(&Vector2::new(POSITION_STD_M.powi(2), flow_velocity_std(dt).powi(2)));
+        // P + R is positive definite (R is), so it inverts.
+        let k = p * (p + r).try_inverse().unwrap_or_else(Matrix2::zeros);
         let innovation_p = position - predicted_position;
         let innovation_v = velocity - s.velocity;
-        let new_position = predicted_position + innovation_p * k[0][0] + innovation_v * k[0][1];
-        let new_velocity = s.velocity + innovation_p * k[1][0] + innovation_v * k[1][1];
-        // P = (I - K) P.
-        let cov = [
-            [(1.0 - k[0][0]) * p[0][0] - k[0][1] * p[1][0], (1.0 - k[0][0]) * p[0][1] - k[0][1] * p[1][1]],
-            [-k[1][0] * p[0][0] + (1.0 - k[1][1]) * p[1][0], -k[1][0] * p[0][1] + (1.0 - k[1][1]) * p[1][1]],
-        ];
-        let cov = [[cov[0][0], 0.5 * (cov[0][1] + cov[1][0])], [0.5 * (cov[0][1] + cov[1][0]), cov[1][1]]];
+        let new_position = predicted_position + innovation_p * k[(0, 0)] + innovation_v * k[(0, 1)];
+        let new_velocity = s.velocity + innovation_p * k[(1, 0)] + innovation_v * k[(1, 1)];
+        let cov = (Matrix2::identity() - k) * p;
+        // Kept symmetric against rounding.
+        let cov = (cov + cov.transpose()) * 0.5;
         self.state = Some(State { t, position: new_position, velocity: new_velocity, cov });
         new_velocity
     }
