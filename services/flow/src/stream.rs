@@ -405,6 +405,10 @@ struct FaceRequest {
 struct FaceWorker {
     frames: Option<Sender<FaceRequest>>,
     models: Receiver<Adapted>,
+    /// Frame-set buffers the thread is done with, reused for the next rounds' copies: a
+    /// fresh buffer per round (11 MB on four 1280x720 views) was faulted in page by page
+    /// on the thread that feeds the engine, while the engine waited.
+    spare: Receiver<Vec<u8>>,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -435,6 +439,7 @@ impl FaceWorker {
     fn new(cameras: &[Camera]) -> Self {
         let (frame_tx, frame_rx) = channel::<FaceRequest>();
         let (model_tx, model_rx) = channel();
+        let (spare_tx, spare_rx) = channel();
         let cameras = cameras.to_vec();
         let thread = std::thread::Builder::new()
             .name("faces".into())
@@ -473,19 +478,23 @@ impl FaceWorker {
                         detections: adapter.last_detections().to_vec(),
                         fused: adapter.last_fused().clone(),
                     };
+                    let _ = spare_tx.send(frame_set);
                     if model_tx.send(Ok((adapter.models().to_vec(), round))).is_err() {
                         return;
                     }
                 }
             })
             .ok();
-        Self { frames: Some(frame_tx), models: model_rx, thread }
+        Self { frames: Some(frame_tx), models: model_rx, spare: spare_rx, thread }
     }
 
-    /// Starts a round on `frame`; a `warm_up` round keeps the default priority (see
-    /// [`FACE_THREAD_NICE`]).
-    fn send(&self, frame: u64, frame_set: Vec<u8>, missing: u32, warm_up: bool) -> Result<(), StreamError> {
-        let request = FaceRequest { frame, frame_set, missing, warm_up };
+    /// Starts a round on a copy of `frame_set` (frame `frame`); a `warm_up` round keeps the
+    /// default priority (see [`FACE_THREAD_NICE`]).
+    fn send(&self, frame: u64, frame_set: &[u8], missing: u32, warm_up: bool) -> Result<(), StreamError> {
+        let mut copy = self.spare.try_recv().unwrap_or_default();
+        copy.clear();
+        copy.extend_from_slice(frame_set);
+        let request = FaceRequest { frame, frame_set: copy, missing, warm_up };
         self.frames.as_ref().and_then(|tx| tx.send(request).ok()).ok_or(StreamError::FaceWorker)
     }
 
@@ -884,7 +893,7 @@ impl<M> FlowStream<M> {
         let rounds = WARM_UP_ROUNDS.min(held.len());
         for k in 0..rounds {
             let index = (k as u64 * self.warm_up_spacing) as usize % held.len();
-            self.faces.send(index as u64, held[index].1.clone(), held[index].2, true)?;
+            self.faces.send(index as u64, &held[index].1, held[index].2, true)?;
             let (models, round) = self.faces.recv()?;
             self.apply_models(&models, round)?;
         }
@@ -906,7 +915,7 @@ impl<M> FlowStream<M> {
         let k = self.pushed;
         let detect = k >= self.detect_from && (k - self.detect_from).is_multiple_of(self.detect_every);
         if detect && (self.wait_for_models || self.pending_models.is_empty()) {
-            self.faces.send(k, frame_set.to_vec(), missing, false)?;
+            self.faces.send(k, frame_set, missing, false)?;
             self.pending_models.push_back(k + self.model_lag);
         }
         if self.pending_models.front().is_some_and(|&due| due <= k) {
