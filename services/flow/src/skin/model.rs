@@ -197,17 +197,32 @@ impl SkinModel {
     /// false, changing nothing, when there is no face: the model keeps its last state.
     pub fn adapt(&mut self, rgb: &[u8], width: u32, height: u32, faces: &[FaceBox]) -> bool {
         let (w, h) = (width as usize, height as usize);
-        if faces.is_empty() || rgb.len() != w * h * 3 {
+        if faces.is_empty() || w == 0 || rgb.len() != w * h * 3 {
             return false;
         }
         let mut skin = vec![0f32; BINS * BINS * BINS];
-        let mut background = vec![0f32; BINS * BINS * BINS];
+        // Counted in integers (exact; the f32 sums they replace were exact below 2^24 too).
+        let mut background_counts = vec![0u32; BINS * BINS * BINS];
         let mut skin_bins = Vec::new();
-        for y in 0..h {
-            for x in 0..w {
-                let i = (y * w + x) * 3;
-                let b = bin([rgb[i], rgb[i + 1], rgb[i + 2]]);
-                let (u, v) = (x as f32 + 0.5, y as f32 + 0.5);
+        for (y, row) in rgb.chunks_exact(w * 3).enumerate() {
+            let v = y as f32 + 0.5;
+            // A row no face box spans is background throughout: counted without testing
+            // every pixel against the faces (that test was most of a face round's time
+            // beside the detector itself).
+            let spanned = faces.iter().any(|f| {
+                let (_, y0, _, fh) = f.skin_region();
+                (v >= f.y && v <= f.y + f.height) || (v >= y0 && v <= y0 + fh)
+            });
+            if !spanned {
+                for px in row.chunks_exact(3) {
+                    background_counts[bin([px[0], px[1], px[2]])] += 1;
+                }
+                continue;
+            }
+            for (x, px) in row.chunks_exact(3).enumerate() {
+                let colour = [px[0], px[1], px[2]];
+                let b = bin(colour);
+                let u = x as f32 + 0.5;
                 let central = faces.iter().any(|f| {
                     let (x0, y0, fw, fh) = f.skin_region();
                     u >= x0 && v >= y0 && u <= x0 + fw && v <= y0 + fh
@@ -217,16 +232,17 @@ impl SkinModel {
                     // alike, so hands and the sides of the head, lit differently from the
                     // face's centre, still match.
                     for k in SHADING_SCALES {
-                        let shaded = [rgb[i], rgb[i + 1], rgb[i + 2]].map(|c| (f32::from(c) * k).min(255.0) as u8);
+                        let shaded = colour.map(|c| (f32::from(c) * k).min(255.0) as u8);
                         skin[bin(shaded)] += 1.0;
                     }
                     skin_bins.push(b);
                 } else if !faces.iter().any(|f| f.contains(u, v)) {
                     // The rest of the face box (hair, eyes, background corners) goes nowhere.
-                    background[b] += 1.0;
+                    background_counts[b] += 1;
                 }
             }
         }
+        let background: Vec<f32> = background_counts.iter().map(|&c| c as f32).collect();
         if skin_bins.is_empty() {
             return false;
         }
