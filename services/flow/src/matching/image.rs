@@ -74,14 +74,14 @@ impl ColourImage {
     /// [`ColourImage::downsample_into`] gives, the same values, without writing and reading
     /// back the full-resolution float image (a third of the memory traffic of building a
     /// frame's pyramid when nothing matches at full resolution).
-    pub fn set_normalised_half_from_rgb8(&mut self, width: usize, height: usize, rgb: &[u8]) {
+    pub fn set_normalised_half_from_rgb8(&mut self, width: usize, height: usize, rgb: &[u8], rings: &mut PieceRings) {
         debug_assert_eq!(rgb.len(), width * height * 3);
         if width == 0 || height == 0 {
             self.resize(0, 0);
             return;
         }
         let table = normalisation_table(width, height, rgb);
-        halve_streamed(width.div_ceil(2), height, self, |y, out| {
+        halve_streamed(width.div_ceil(2), height, self, rings, |y, out| {
             normalised_half_row(out, &rgb[y * width * 3..][..width * 3], width, &table)
         });
     }
@@ -140,18 +140,61 @@ impl ColourImage {
     /// each pair of pixels, so that pixel `i` of the coarse image sits at `2i + 0.5` of this
     /// one (the convention [`crate::matching::camera::LevelProjection`] uses) and aliasing is
     /// damped.
-    pub fn downsample_into(&self, dst: &mut ColourImage) {
+    pub fn downsample_into(&self, dst: &mut ColourImage, rings: &mut PieceRings) {
         let w = self.width;
-        halve_streamed(w.div_ceil(2).max(1), self.height, dst, |y, out| half_row(out, &self.pixels[y * w..][..w]));
+        halve_streamed(w.div_ceil(2).max(1), self.height, dst, rings, |y, out| {
+            half_row(out, &self.pixels[y * w..][..w])
+        });
     }
 }
+
+/// Most parallel pieces a streamed pass cuts an image into ([`piece_rows`]).
+const PIECES: usize = 4;
 
 /// Output rows of one parallel piece of a streamed pass ([`halve_streamed`],
 /// [`ColourImage::local_normalise_into`]): a quarter of the image, so two threads share an
 /// image's pieces evenly while each piece recomputes few of the input rows it shares with
-/// the piece before.
+/// the piece before. At most [`PIECES`] pieces.
 fn piece_rows(height: usize) -> usize {
-    height.div_ceil(4).max(16)
+    height.div_ceil(PIECES).max(16)
+}
+
+/// The rows each parallel piece of a streamed pass keeps, reused from frame to frame (a
+/// steady stream allocates nothing per frame).
+#[derive(Clone, Debug, Default)]
+pub struct PieceRings {
+    pieces: Vec<PieceRing>,
+}
+
+/// One piece's ring: `slots` rows of texels, the image row each slot holds, and the slots
+/// the current output row reads.
+#[derive(Clone, Debug, Default)]
+struct PieceRing {
+    texels: Vec<Rgba>,
+    held: Vec<usize>,
+    reads: Vec<usize>,
+}
+
+impl PieceRings {
+    /// One ring per piece of an output `height` rows tall, each of `slots` rows `width`
+    /// texels wide, holding no row yet; with the pieces' length in output rows.
+    fn for_pass(&mut self, height: usize, width: usize, slots: usize) -> (&mut [PieceRing], usize) {
+        let piece = piece_rows(height);
+        let count = height.div_ceil(piece).max(1);
+        if self.pieces.len() < count {
+            self.pieces.resize_with(count, PieceRing::default);
+        }
+        for ring in &mut self.pieces[..count] {
+            if ring.texels.len() < slots * width {
+                ring.texels.resize(slots * width, [0.0; 4]);
+            }
+            ring.held.clear();
+            ring.held.resize(slots, usize::MAX);
+            ring.reads.clear();
+            ring.reads.resize(slots, 0);
+        }
+        (&mut self.pieces[..count], piece)
+    }
 }
 
 /// The vertical pass of halving, streamed: `dst` becomes `cw` x `ceil(height / 2)`, its
@@ -160,24 +203,28 @@ fn piece_rows(height: usize) -> usize {
 /// output rows keeps the four halved rows it reads in a ring that stays in cache, instead
 /// of a halved image written whole and read back (on four 1280x720 views, 30 MB per frame
 /// set through memory); the values are the same, bit for bit.
-fn halve_streamed(cw: usize, height: usize, dst: &mut ColourImage, half_row_of: impl Fn(usize, &mut [Rgba]) + Sync) {
+fn halve_streamed(
+    cw: usize,
+    height: usize,
+    dst: &mut ColourImage,
+    rings: &mut PieceRings,
+    half_row_of: impl Fn(usize, &mut [Rgba]) + Sync,
+) {
     use rayon::prelude::*;
     dst.resize(cw, height.div_ceil(2).max(1));
-    let piece = piece_rows(dst.height);
-    dst.pixels.par_chunks_mut(cw * piece).enumerate().for_each(|(p, out_piece)| {
-        let mut ring = vec![[0.0f32; 4]; 4 * cw];
-        let mut held = [usize::MAX; 4];
+    let (rings, piece) = rings.for_pass(dst.height, cw, 4);
+    dst.pixels.par_chunks_mut(cw * piece).zip(rings.par_iter_mut()).enumerate().for_each(|(p, (out_piece, ring))| {
         for (i, out) in out_piece.chunks_mut(cw).enumerate() {
             let cy = p * piece + i;
             let rows: [usize; 4] = std::array::from_fn(|t| clamp_index(2 * cy as isize - 1 + t as isize, height));
             // Four consecutive rows (or fewer, clamped) fall in four different slots.
             for &y in &rows {
-                if held[y % 4] != y {
-                    half_row_of(y, &mut ring[(y % 4) * cw..][..cw]);
-                    held[y % 4] = y;
+                if ring.held[y % 4] != y {
+                    half_row_of(y, &mut ring.texels[(y % 4) * cw..][..cw]);
+                    ring.held[y % 4] = y;
                 }
             }
-            vertical_half_row(out, &ring, rows.map(|y| (y % 4) * cw));
+            vertical_half_row(out, &ring.texels, rows.map(|y| (y % 4) * cw));
         }
     });
 }
@@ -328,6 +375,7 @@ fn normalised_texel(table: &[[f32; 256]; 3], px: &[u8]) -> Rgba {
 pub struct Pyramid {
     levels: Vec<ColourImage>,
     matching: Vec<ColourImage>,
+    rings: PieceRings,
 }
 
 /// Parameters of local contrast normalisation.
@@ -360,7 +408,7 @@ impl Pyramid {
         // coarser, level 0 is left empty and level 1 is built straight from the bytes.
         let first = if matching_from >= 1 && levels >= 2 {
             self.levels[0].resize(0, 0);
-            self.levels[1].set_normalised_half_from_rgb8(width, height, rgb);
+            self.levels[1].set_normalised_half_from_rgb8(width, height, rgb, &mut self.rings);
             2
         } else {
             self.levels[0].set_normalised_from_rgb8(width, height, rgb);
@@ -368,14 +416,14 @@ impl Pyramid {
         };
         for l in first..levels {
             let (finer, coarser) = self.levels.split_at_mut(l);
-            finer[l - 1].downsample_into(&mut coarser[0]);
+            finer[l - 1].downsample_into(&mut coarser[0], &mut self.rings);
         }
         match local {
             Some(params) => {
                 self.matching.resize_with(levels, ColourImage::default);
                 for (l, (src, dst)) in self.levels.iter().zip(self.matching.iter_mut()).enumerate() {
                     if l >= matching_from {
-                        src.local_normalise_into(dst, params);
+                        src.local_normalise_into(dst, params, &mut self.rings);
                     }
                 }
             }
@@ -409,7 +457,7 @@ impl ColourImage {
     /// Writes into `dst` this image with every pixel's neighbourhood mean removed (per
     /// channel) and divided by the neighbourhood's standard deviation (over all channels,
     /// plus `floor` in quadrature): the per-pixel form of normalised cross-correlation.
-    pub fn local_normalise_into(&self, dst: &mut ColourImage, params: LocalNormalisation) {
+    pub fn local_normalise_into(&self, dst: &mut ColourImage, params: LocalNormalisation, rings: &mut PieceRings) {
         use rayon::prelude::*;
         let (w, h) = (self.width, self.height);
         dst.resize(w, h);
@@ -423,26 +471,25 @@ impl ColourImage {
         // Pieces of rows in parallel, each keeping the horizontal box sums of the `side` rows
         // its current row needs in a ring that stays in cache (the whole image's sums were
         // written and read back seven times); the values are the same, bit for bit.
-        let piece = piece_rows(h);
-        dst.pixels.par_chunks_mut(w * piece).enumerate().for_each(|(p, out_piece)| {
-            let mut ring = vec![[0.0f32; 4]; side * w];
-            let mut held = vec![usize::MAX; side];
-            let mut rows = vec![0usize; side];
-            for (i, out) in out_piece.chunks_mut(w).enumerate() {
-                let y = p * piece + i;
-                // `side` consecutive rows (or fewer, clamped) fall in different slots.
-                for (row, dy) in rows.iter_mut().zip(-r..=r) {
-                    let source = clamp_index(y as isize + dy, h);
-                    let slot = source % side;
-                    if held[slot] != source {
-                        box_sum_row(&mut ring[slot * w..][..w], &self.pixels[source * w..][..w], r);
-                        held[slot] = source;
+        let (rings, piece) = rings.for_pass(h, w, side);
+        dst.pixels.par_chunks_mut(w * piece).zip(rings.par_iter_mut()).enumerate().for_each(
+            |(p, (out_piece, ring))| {
+                for (i, out) in out_piece.chunks_mut(w).enumerate() {
+                    let y = p * piece + i;
+                    // `side` consecutive rows (or fewer, clamped) fall in different slots.
+                    for (read, dy) in ring.reads.iter_mut().zip(-r..=r) {
+                        let source = clamp_index(y as isize + dy, h);
+                        let slot = source % side;
+                        if ring.held[slot] != source {
+                            box_sum_row(&mut ring.texels[slot * w..][..w], &self.pixels[source * w..][..w], r);
+                            ring.held[slot] = source;
+                        }
+                        *read = slot * w;
                     }
-                    *row = slot * w;
+                    normalised_box_row(out, &self.pixels[y * w..][..w], &ring.texels, &ring.reads, area, floor_sq);
                 }
-                normalised_box_row(out, &self.pixels[y * w..][..w], &ring, &rows, area, floor_sq);
-            }
-        });
+            },
+        );
     }
 }
 
@@ -586,7 +633,7 @@ mod tests {
             }
         }
         let mut out = ColourImage::default();
-        img.local_normalise_into(&mut out, LocalNormalisation { radius: 1, floor: 1e-3 });
+        img.local_normalise_into(&mut out, LocalNormalisation { radius: 1, floor: 1e-3 }, &mut PieceRings::default());
         let left = out.at(3, 5);
         let right = out.at(15, 5);
         for k in 0..3 {
@@ -604,8 +651,9 @@ mod tests {
             let mut full = ColourImage::default();
             full.set_normalised_from_rgb8(w, h, &rgb);
             let (mut halved, mut direct) = (ColourImage::default(), ColourImage::default());
-            full.downsample_into(&mut halved);
-            direct.set_normalised_half_from_rgb8(w, h, &rgb);
+            let mut rings = PieceRings::default();
+            full.downsample_into(&mut halved, &mut rings);
+            direct.set_normalised_half_from_rgb8(w, h, &rgb, &mut rings);
             assert_eq!((direct.width(), direct.height()), (halved.width(), halved.height()), "{w}x{h}");
             assert_eq!(direct.pixels(), halved.pixels(), "{w}x{h}: the same values, bit for bit");
         }
@@ -629,7 +677,7 @@ mod tests {
         let (w, h) = (9, 141);
         let img = textured(w, h);
         let mut half = ColourImage::default();
-        img.downsample_into(&mut half);
+        img.downsample_into(&mut half, &mut PieceRings::default());
         assert_eq!((half.width(), half.height()), (5, 71));
         let at = |x: isize, y: isize| img.at(clamp_index(x, w), clamp_index(y, h));
         for cy in 0..71isize {
@@ -662,7 +710,7 @@ mod tests {
         let img = textured(w, h);
         let params = LocalNormalisation { radius: 3, floor: 0.05 };
         let mut out = ColourImage::default();
-        img.local_normalise_into(&mut out, params);
+        img.local_normalise_into(&mut out, params, &mut PieceRings::default());
         let r = params.radius as isize;
         let area = ((2 * r + 1) * (2 * r + 1)) as f64;
         for y in 0..h {
