@@ -197,6 +197,20 @@ impl PieceRings {
     }
 }
 
+impl PieceRing {
+    /// The offset in `texels` of image row `source`, `width` texels wide, written by `fill`
+    /// unless its slot still holds it. Any run of consecutive rows no longer than the ring
+    /// falls in different slots.
+    fn row(&mut self, source: usize, width: usize, fill: impl FnOnce(&mut [Rgba])) -> usize {
+        let slot = source % self.held.len();
+        if self.held[slot] != source {
+            fill(&mut self.texels[slot * width..][..width]);
+            self.held[slot] = source;
+        }
+        slot * width
+    }
+}
+
 /// The vertical pass of halving, streamed: `dst` becomes `cw` x `ceil(height / 2)`, its
 /// row `cy` the [`HALF_TAPS`] filter of rows `2cy - 1 ..= 2cy + 2` (clamped) of the
 /// horizontally halved image, whose row `y` `half_row_of(y, out)` writes. Each piece of
@@ -216,15 +230,11 @@ fn halve_streamed(
     dst.pixels.par_chunks_mut(cw * piece).zip(rings.par_iter_mut()).enumerate().for_each(|(p, (out_piece, ring))| {
         for (i, out) in out_piece.chunks_mut(cw).enumerate() {
             let cy = p * piece + i;
-            let rows: [usize; 4] = std::array::from_fn(|t| clamp_index(2 * cy as isize - 1 + t as isize, height));
-            // Four consecutive rows (or fewer, clamped) fall in four different slots.
-            for &y in &rows {
-                if ring.held[y % 4] != y {
-                    half_row_of(y, &mut ring.texels[(y % 4) * cw..][..cw]);
-                    ring.held[y % 4] = y;
-                }
-            }
-            vertical_half_row(out, &ring.texels, rows.map(|y| (y % 4) * cw));
+            let rows: [usize; 4] = std::array::from_fn(|t| {
+                let y = clamp_index(2 * cy as isize - 1 + t as isize, height);
+                ring.row(y, cw, |row| half_row_of(y, row))
+            });
+            vertical_half_row(out, &ring.texels, rows);
         }
     });
 }
@@ -476,15 +486,9 @@ impl ColourImage {
             |(p, (out_piece, ring))| {
                 for (i, out) in out_piece.chunks_mut(w).enumerate() {
                     let y = p * piece + i;
-                    // `side` consecutive rows (or fewer, clamped) fall in different slots.
-                    for (read, dy) in ring.reads.iter_mut().zip(-r..=r) {
+                    for (k, dy) in (-r..=r).enumerate() {
                         let source = clamp_index(y as isize + dy, h);
-                        let slot = source % side;
-                        if ring.held[slot] != source {
-                            box_sum_row(&mut ring.texels[slot * w..][..w], &self.pixels[source * w..][..w], r);
-                            ring.held[slot] = source;
-                        }
-                        *read = slot * w;
+                        ring.reads[k] = ring.row(source, w, |row| box_sum_row(row, &self.pixels[source * w..][..w], r));
                     }
                     normalised_box_row(out, &self.pixels[y * w..][..w], &ring.texels, &ring.reads, area, floor_sq);
                 }
