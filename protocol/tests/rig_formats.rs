@@ -97,6 +97,41 @@ fn opencv_files_of_one_camera_each_make_one_rig() {
     assert_same_projections(&reference_rig(), &Rig::load_dir(dir.path()).expect("load dir"), "folder");
 }
 
+/// The reference rig with its translations in millimetres, as anipose, FreeMoCap and OpenCV
+/// calibrations measured with a board in millimetres have them.
+fn reference_rig_in_millimetres() -> Rig {
+    let mut rig = reference_rig();
+    for camera in &mut rig.cameras {
+        camera.translation *= 1000.0;
+    }
+    rig
+}
+
+#[test]
+fn a_calibration_in_millimetres_is_read_in_metres_with_a_note() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("calibration.toml");
+    std::fs::write(&path, reference_rig_in_millimetres().to_toml_string()).expect("write");
+    let rig = Rig::load(&path).expect("rig in millimetres");
+    assert_same_projections(&reference_rig(), &rig, "millimetres");
+    for (got, want) in rig.cameras.iter().zip(&reference_rig().cameras) {
+        assert!((got.centre() - want.centre()).norm() < 1e-9, "{} at {:?}", got.name, got.centre());
+    }
+    assert!(rig.notes.iter().any(|n| n.contains("read as millimetres")), "{:?}", rig.notes);
+    assert!(reference_rig().notes.iter().all(|n| !n.contains("millimetres")), "a rig in metres stays in metres");
+
+    // One camera per file: each file alone has no width to judge; the rig they make has.
+    let mut files = Vec::new();
+    for camera in reference_rig_in_millimetres().cameras {
+        let file = dir.path().join(format!("{}.toml", camera.name));
+        std::fs::write(&file, Rig::new(vec![camera]).to_toml_string()).expect("write");
+        files.push(file);
+    }
+    let rig = Rig::load_files(&files).expect("per-camera files in millimetres");
+    assert_same_projections(&reference_rig(), &rig, "per-camera files in millimetres");
+    assert!(rig.notes.iter().any(|n| n.contains("read as millimetres")), "{:?}", rig.notes);
+}
+
 #[test]
 fn a_camera_in_two_files_is_an_error_naming_both() {
     let files = [fixture("cam_0.yml"), fixture("opencv_rig.yml")];

@@ -55,6 +55,7 @@ mod error;
 mod format;
 mod opencv;
 mod toml_format;
+mod units;
 mod up;
 
 use std::path::{Path, PathBuf};
@@ -124,8 +125,8 @@ impl Rig {
     }
 
     /// Reads a calibration file in any supported format (see [`Rig::from_str_detect`])
-    /// and says which it was. Every error names the file; notes (ignored cameras) are
-    /// logged as warnings and kept in [`Rig::notes`].
+    /// and says which it was. Every error names the file; notes (ignored cameras, a rig in
+    /// millimetres converted to metres) are logged as warnings and kept in [`Rig::notes`].
     pub fn load_detected(path: impl AsRef<Path>) -> Result<(Rig, RigFormat), RigError> {
         let path = path.as_ref();
         let text = crate::read_text_capped(path).map_err(|error| RigError::Io {
@@ -136,6 +137,7 @@ impl Rig {
         let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let (mut rig, format) = Rig::from_str_detect(&text, &stem)
             .map_err(|error| RigError::InFile { path: path.to_owned(), error: Box::new(error) })?;
+        rig.infer_units();
         rig.infer_mounts();
         Ok((rig, format))
     }
@@ -172,7 +174,9 @@ impl Rig {
         if rig.cameras.is_empty() {
             return Err(RigError::NoCameras);
         }
-        // Each file's cameras were judged alone; together they may outvote differently.
+        // Each file's cameras were judged alone (one camera per file has no width to judge a
+        // unit by); together they may outvote differently.
+        rig.infer_units();
         rig.infer_mounts();
         Ok(rig)
     }
@@ -301,6 +305,15 @@ impl Rig {
         let up = self.world_up();
         for note in up::infer_mounts(&mut self.cameras, &mut self.mounts_inferred, &up) {
             tracing::info!("{note}");
+            self.notes.push(note);
+        }
+    }
+
+    /// Converts a calibration in millimetres to metres ([`units::millimetres_to_metres`]),
+    /// logged and kept in [`Rig::notes`]. A rig in metres is left as it is.
+    pub fn infer_units(&mut self) {
+        if let Some(note) = units::millimetres_to_metres(&mut self.cameras) {
+            tracing::warn!("{note}");
             self.notes.push(note);
         }
     }
