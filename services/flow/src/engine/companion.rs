@@ -7,7 +7,7 @@ use std::time::Instant;
 use handflow_protocol::Camera;
 
 use super::{in_image, point_on_ray, ray_grid, FlowError, SceneFlowEngine};
-use crate::config::EngineConfig;
+use crate::config::{Coverage, EngineConfig};
 use crate::matching::camera::LevelProjection;
 
 impl SceneFlowEngine {
@@ -40,15 +40,19 @@ impl SceneFlowEngine {
 
     /// Runs `step` on the companion engine with this engine's frames (pyramids, skin maps,
     /// which views are there) lent to it: the same images, built once. Adds its cost to
-    /// this estimate's. While the newest frame lacks the companion's reference view, the
-    /// companion starts afresh instead.
+    /// this estimate's. While the newest frame lacks the companion's reference view, or its
+    /// skin model cannot be trusted yet ([`Self::companion_view_trusted`]), the companion
+    /// starts afresh instead.
     pub(super) fn run_companion(
         &mut self,
         started: Instant,
         step: impl FnOnce(&mut SceneFlowEngine) -> Result<bool, FlowError>,
     ) -> Result<(), FlowError> {
+        let Some(second) = self.companion.as_ref().map(|c| c.reference) else { return Ok(()) };
+        let present = self.present[self.ring_newest].get(second).copied().unwrap_or(true);
+        let trusted = present && self.companion_view_trusted(second);
         let Some(companion) = self.companion.as_mut() else { return Ok(()) };
-        if !self.present[self.ring_newest].get(companion.reference).copied().unwrap_or(true) {
+        if !trusted {
             companion.reset();
             return Ok(());
         }
@@ -66,6 +70,51 @@ impl SceneFlowEngine {
         Ok(())
     }
 }
+
+impl SceneFlowEngine {
+    /// Whether the skin map of `camera`, the companion's reference, can seed rays. Its rays
+    /// start where its own view sees skin; until that view's model has been adapted on a face
+    /// (its own, or one the other views lend it), the generic prior decides, and under warm
+    /// light it takes walls, wood and doors for skin. Measured on the shared real session
+    /// under warmer light (3500 K): 60 % of the companion's view was "skin", its rays matched
+    /// a lit door frame to a depth by the body, and the right hand's track followed it for
+    /// thirty frames. A generic model is trusted only while it marks at most
+    /// [`MAX_GENERIC_SKIN_SHARE`] of the image (the same session in its own light: 6.6 %, so
+    /// its companion still places the hands that only it sees in the first frames).
+    fn companion_view_trusted(&self, camera: usize) -> bool {
+        if self.config.coverage != Coverage::Skin {
+            return true;
+        }
+        if self.skin_models.get(camera).is_none_or(|m| m.adaptations() > 0) {
+            return true;
+        }
+        let threshold = self.config.skin_threshold;
+        let Some(map) = self.skin_maps[self.ring_newest].get(camera) else { return true };
+        let (mut skin, mut seen) = (0usize, 0usize);
+        for &r in map.iter().step_by(SKIN_SHARE_STRIDE) {
+            seen += 1;
+            skin += usize::from(r > threshold);
+        }
+        let trusted = skin as f32 <= MAX_GENERIC_SKIN_SHARE * seen as f32;
+        if !trusted {
+            tracing::debug!(
+                "second reference `{}` waits for a face: its generic skin model marks {:.0} % of the view",
+                self.cameras[camera].name,
+                100.0 * skin as f32 / seen.max(1) as f32
+            );
+        }
+        trusted
+    }
+}
+
+/// Most of its image a skin model never adapted on a face may mark as skin and still seed
+/// the companion's rays. People fill a few percent to a fifth of a view in short sleeves;
+/// beyond a quarter the generic prior is taking the room's colours for skin.
+pub const MAX_GENERIC_SKIN_SHARE: f32 = 0.25;
+
+/// Every this-many-th pixel is counted for a skin share: a share to a percent needs a few
+/// thousand samples, not all of them (a prime, so it does not follow the columns).
+const SKIN_SHARE_STRIDE: usize = 61;
 
 /// The camera looking from the most different direction than `reference`'s, under 90
 /// degrees (a camera behind the person sees no more of the hands), with three or more
@@ -167,6 +216,40 @@ mod tests {
         assert_eq!(companion.reference(), 1);
         assert!(engine.reference_sees([0.0, 0.0, 2.0]) && !engine.reference_sees([3.0, 0.0, 2.0]));
         assert!(!engine.reference_sees([0.0, 0.0, -2.0]), "behind the camera");
+    }
+
+    #[test]
+    fn a_companion_whose_generic_model_calls_most_of_its_view_skin_waits_for_a_face() {
+        use crate::skin::faces::FaceBox;
+        use crate::skin::model::SkinModel;
+        let cameras = vec![camera("ref", 0.0), camera("second", 0.3), camera("third", -0.1)];
+        let config = EngineConfig {
+            coverage: Coverage::Skin,
+            second_reference: true,
+            pyramid_levels: 2,
+            coarse_extra_loops: 2,
+            ..EngineConfig::default()
+        };
+        let mut engine = SceneFlowEngine::new(config, cameras, 0).unwrap();
+        // A warm wall filling the companion's view: a colour the generic prior calls skin.
+        let wall = [222u8, 170, 140];
+        assert!(SkinModel::generic(0.0).is_skin(wall));
+        let warm_view: Vec<u8> = wall.repeat(32 * 24);
+        for f in 0..3 {
+            let views = [textured_view(f, 1), warm_view.clone(), textured_view(f + 4, 1)];
+            let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
+            engine.push_frame(&views).unwrap();
+            assert_eq!(engine.companion().unwrap().ring_len, 0, "frame {f}: the companion waits");
+        }
+        // Once a face adapted its model, the same view seeds the companion's rays.
+        let mut models = engine.skin_models().to_vec();
+        let face = FaceBox { x: 8.0, y: 4.0, width: 16.0, height: 16.0, score: 9.0 };
+        assert!(models[1].adapt(&textured_view(0, 1), 32, 24, &[face]));
+        engine.set_skin_models(&models).unwrap();
+        let views = [textured_view(3, 1), warm_view.clone(), textured_view(7, 1)];
+        let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
+        engine.push_frame(&views).unwrap();
+        assert_eq!(engine.companion().unwrap().ring_len, 1, "the companion runs once its model is adapted");
     }
 
     #[test]

@@ -1,0 +1,258 @@
+#!/usr/bin/env python3
+"""Derives variants of a real caliscope session that stand for sessions we have not seen, and
+scores `handflow track` on each against the session's reference (transformed with the world
+where the variant moves it).
+
+Each variant changes one thing a user's session may differ in:
+  as-is          the session unchanged (the row to compare with)
+  rig-toml       its calibration as an anipose / Pose2Sim TOML, in metres
+  millimetres    the same in millimetres (anipose, FreeMoCap and OpenCV calibrations often are)
+  z-up           the world turned to Z-up and moved 2 m (a motion-capture world)
+  half-size      videos at half the width and height (640x360 webcams), calibration scaled
+  without-CAM    one camera left out (a three-camera rig), once per camera
+  lossy          videos re-encoded at H.264 CRF 30 (a streaming-quality recording)
+  warm-light     videos under warmer light (3500 K)
+  dim            videos darker and less contrasted (a badly lit room)
+
+Needs ffmpeg for the video variants and Python 3.11 (tomllib). The videos are re-encoded once
+into OUT and reused by later runs.
+
+Usage: scripts/session_variants.py [--session DIR] [--out DIR] [--seeds 0 1 2] [--only NAME ...]
+"""
+
+import argparse
+import csv
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def caliscope_cameras(session):
+    """The session's caliscope cameras as dicts: name, size, K, distortions, R (3x3), t."""
+    with open(session / "camera_array.toml", "rb") as f:
+        data = tomllib.load(f)
+    cameras = []
+    for key in sorted(data["cameras"], key=int):
+        c = data["cameras"][key]
+        if c.get("ignore", False):
+            continue
+        cameras.append(
+            {
+                "name": f"cam_{key}",
+                "size": list(c["size"]),
+                "matrix": [list(r) for r in c["matrix"]],
+                "distortions": list(c["distortions"]),
+                "rotation": [list(r) for r in c["rotation"]],
+                "translation": list(c["translation"]),
+            }
+        )
+    return cameras
+
+
+def write_rig(cameras, path):
+    """An anipose / Pose2Sim TOML (3x3 rotations are accepted), numbers written exactly."""
+    lines = []
+    for c in cameras:
+        lines += [
+            f"[{c['name']}]",
+            f'name = "{c["name"]}"',
+            f"size = [{c['size'][0]}, {c['size'][1]}]",
+            f"matrix = {json.dumps(c['matrix'])}",
+            f"distortions = {json.dumps(c['distortions'])}",
+            f"rotation = {json.dumps(c['rotation'])}",
+            f"translation = {json.dumps(c['translation'])}",
+            "",
+        ]
+    path.write_text("\n".join(lines))
+
+
+def matmul(a, b):
+    return [[sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+
+
+def matvec(a, v):
+    return [sum(a[i][k] * v[k] for k in range(3)) for i in range(3)]
+
+
+def transpose(a):
+    return [[a[j][i] for j in range(3)] for i in range(3)]
+
+
+# The z-up variant's world: x' = TURN x + SHIFT (a quarter turn about x takes a Y-up world's
+# up to +Z; the shift moves the origin 2 m away from the rig).
+TURN = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+SHIFT = [1.2, -2.0, 0.4]
+
+
+def moved_world(cameras):
+    """The cameras in the world x' = TURN x + SHIFT: R' = R TURN^T, t' = t - R' SHIFT."""
+    out = []
+    for c in cameras:
+        r = matmul(c["rotation"], transpose(TURN))
+        shifted = matvec(r, SHIFT)
+        out.append(dict(c, rotation=r, translation=[t - s for t, s in zip(c["translation"], shifted)]))
+    return out
+
+
+def moved_reference(reference):
+    ref = json.loads(json.dumps(reference))
+    for frame in ref["frames"]:
+        for obj in frame["objects"].values():
+            if "3d" in obj:
+                obj["3d"] = [a + b for a, b in zip(matvec(TURN, obj["3d"]), SHIFT)]
+    return ref
+
+
+def halved(cameras):
+    """Intrinsics of frames scaled by 1/2 (pixel centres at integer coordinates)."""
+    out = []
+    for c in cameras:
+        k = [row[:] for row in c["matrix"]]
+        k[0][0] /= 2
+        k[1][1] /= 2
+        k[0][2] = (k[0][2] + 0.5) / 2 - 0.5
+        k[1][2] = (k[1][2] + 0.5) / 2 - 0.5
+        out.append(dict(c, matrix=k, size=[c["size"][0] // 2, c["size"][1] // 2]))
+    return out
+
+
+def encode(src, dst, video_filter, crf):
+    if dst.exists():
+        return
+    tmp = dst.with_suffix(".part.mp4")
+    cmd = ["ffmpeg", "-hide_banner", "-loglevel", "error", "-y", "-i", str(src)]
+    if video_filter:
+        cmd += ["-vf", video_filter]
+    cmd += ["-c:v", "libx264", "-crf", str(crf), "-pix_fmt", "yuv420p", str(tmp)]
+    subprocess.run(cmd, check=True)
+    tmp.rename(dst)
+
+
+def build(name, session, out, cameras, reference):
+    """Writes variant `name` into out/name and returns its folder."""
+    d = out / name
+    d.mkdir(parents=True, exist_ok=True)
+    names = [c["name"] for c in cameras]
+    kept = names
+    rig = None
+    ref = reference
+    video = None  # (ffmpeg filter, crf) when the videos are re-encoded
+    if name == "as-is":
+        shutil.copy(session / "camera_array.toml", d / "camera_array.toml")
+    elif name == "rig-toml":
+        rig = cameras
+    elif name == "millimetres":
+        rig = [dict(c, translation=[1000.0 * t for t in c["translation"]]) for c in cameras]
+    elif name == "z-up":
+        rig, ref = moved_world(cameras), moved_reference(reference)
+    elif name == "half-size":
+        rig, video = halved(cameras), ("scale=iw/2:ih/2:flags=area", 16)
+    elif name.startswith("without-"):
+        left_out = name[len("without-") :]
+        kept = [n for n in names if n != left_out]
+        rig = [c for c in cameras if c["name"] != left_out]
+    elif name == "lossy":
+        rig, video = cameras, ("null", 30)
+    elif name == "warm-light":
+        rig, video = cameras, ("colortemperature=temperature=3500", 16)
+    elif name == "dim":
+        rig, video = cameras, ("eq=brightness=-0.08:contrast=0.7:gamma=0.8", 16)
+    else:
+        raise SystemExit(f"unknown variant `{name}`")
+    if rig is not None:
+        write_rig(rig, d / "rig.toml")
+    for n in kept:
+        src = session / f"{n}.mp4"
+        dst = d / f"{n}.mp4"
+        if video is None:
+            if not dst.exists():
+                os.symlink(src.resolve(), dst)
+        else:
+            encode(src, dst, *video)
+    with open(session / "timestamps.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    with open(d / "timestamps.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        for r in rows:
+            if f"cam_{r['cam_id']}" in kept:
+                w.writerow(r)
+    (d / "reference.json").write_text(json.dumps(ref))
+    return d
+
+
+def score(binary, folder, seed):
+    tracks = folder / f"tracks-{seed}.jsonl"
+    start = time.monotonic()
+    run = subprocess.run(
+        [binary, "track", "--recording", str(folder), "--out", str(tracks), "--seed", str(seed)],
+        capture_output=True,
+        text=True,
+    )
+    seconds = time.monotonic() - start
+    if run.returncode != 0:
+        return None, seconds, run.stderr.strip().splitlines()[-1:]
+    ev = subprocess.run(
+        [binary, "eval", "tracks", "--recording", str(folder), "--tracks", str(tracks), "--reference",
+         str(folder / "reference.json"), "--json"],
+        capture_output=True,
+        text=True,
+    )
+    if ev.returncode != 0:
+        return None, seconds, ev.stderr.strip().splitlines()[-1:]
+    warnings = [line for line in run.stderr.splitlines() if " WARN " in line]
+    return json.loads(ev.stdout), seconds, warnings
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--session", type=Path, default=ROOT.parent / "shared/data/real/caliscope-hands")
+    p.add_argument("--out", type=Path, default=ROOT / "out/session-variants")
+    p.add_argument("--seeds", nargs="+", type=int, default=[0])
+    p.add_argument("--only", nargs="+")
+    args = p.parse_args()
+    if not (args.session / "camera_array.toml").is_file():
+        print(f"skipped: no caliscope session at {args.session}", file=sys.stderr)
+        return 0
+    binary = os.environ.get("HANDFLOW_BIN", str(ROOT / "target/release/handflow"))
+    if not os.access(binary, os.X_OK):
+        subprocess.run(["cargo", "build", "--release", "-q", "-p", "handflow"], cwd=ROOT, check=True)
+    cameras = caliscope_cameras(args.session)
+    reference = json.loads((args.session / "reference.json").read_text())
+    names = ["as-is", "rig-toml", "millimetres", "z-up", "half-size"]
+    names += [f"without-{c['name']}" for c in cameras]
+    names += ["lossy", "warm-light", "dim"]
+    if args.only:
+        names = [n for n in names if n in args.only]
+    objects = ("head", "left_hand", "right_hand")
+    print("| variant | seed | " + " | ".join(f"{o}: within 5 / 10 cm" for o in objects) + " | switches | sets/s |")
+    print("|---|---|" + "---|" * (len(objects) + 2))
+    for name in names:
+        folder = build(name, args.session, args.out, cameras, reference)
+        for seed in args.seeds:
+            report, seconds, notes = score(binary, folder, seed)
+            if report is None:
+                print(f"| {name} | {seed} | failed: {' '.join(notes)} |")
+                continue
+            cells = []
+            for o in objects:
+                r = report.get(o)
+                cells.append("-" if r is None else f"{100 * r['within_5cm']:.1f} / {100 * r['within_10cm']:.1f} %")
+            frames = report["frames"]
+            print(f"| {name} | {seed} | " + " | ".join(cells) + f" | {report.get('identity_switches', '-')} | "
+                  f"{frames / seconds:.1f} |", flush=True)
+            for warning in notes[:3]:
+                print(f"  warning: {warning.split(' WARN ', 1)[-1][:200]}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
