@@ -10,6 +10,8 @@ Each variant changes one thing a user's session may differ in:
   z-up           the world turned to Z-up and moved 2 m (a motion-capture world)
   half-size      videos at half the width and height (640x360 webcams), calibration scaled
   without-CAM    one camera left out (a three-camera rig), once per camera
+  sideways-CAM   one camera mounted a quarter turn clockwise (its video turned, calibrated as
+                 turned, no mount recorded), for the most frontal camera and a side one
   lossy          videos re-encoded at H.264 CRF 30 (a streaming-quality recording)
   warm-light     videos under warmer light (3500 K)
   dim            videos darker and less contrasted (a badly lit room)
@@ -124,6 +126,28 @@ def halved(cameras):
     return out
 
 
+# Clockwise quarter turn of a camera's frames: pixel (u, v) of a W x H frame goes to
+# (H - 1 - v, u), so camera axes (x, y, z) become (-y, x, z).
+QUARTER_CW = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+def turned_clockwise(camera):
+    """The camera calibrated on its frames turned a quarter clockwise."""
+    k = camera["matrix"]
+    (w, h) = camera["size"]
+    fx, fy, cx, cy = k[0][0], k[1][1], k[0][2], k[1][2]
+    k1, k2, p1, p2, k3 = camera["distortions"]
+    return dict(
+        camera,
+        size=[h, w],
+        matrix=[[fy, 0.0, h - 1 - cy], [0.0, fx, cx], [0.0, 0.0, 1.0]],
+        # Radial terms do not turn; the tangential ones do: p1' = p2, p2' = -p1.
+        distortions=[k1, k2, p2, -p1, k3],
+        rotation=matmul(QUARTER_CW, camera["rotation"]),
+        translation=matvec(QUARTER_CW, camera["translation"]),
+    )
+
+
 def encode(src, dst, video_filter, crf):
     if dst.exists():
         return
@@ -159,6 +183,10 @@ def build(name, session, out, cameras, reference):
         left_out = name[len("without-") :]
         kept = [n for n in names if n != left_out]
         rig = [c for c in cameras if c["name"] != left_out]
+    elif name.startswith("sideways-"):
+        turned = name[len("sideways-") :]
+        rig = [turned_clockwise(c) if c["name"] == turned else c for c in cameras]
+        video = {turned: ("transpose=clock", 16)}
     elif name == "lossy":
         rig, video = cameras, ("null", 30)
     elif name == "warm-light":
@@ -172,11 +200,12 @@ def build(name, session, out, cameras, reference):
     for n in kept:
         src = session / f"{n}.mp4"
         dst = d / f"{n}.mp4"
-        if video is None:
+        this_video = video.get(n) if isinstance(video, dict) else video
+        if this_video is None:
             if not dst.exists():
                 os.symlink(src.resolve(), dst)
         else:
-            encode(src, dst, *video)
+            encode(src, dst, *this_video)
     with open(session / "timestamps.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     with open(d / "timestamps.csv", "w", newline="") as f:
@@ -229,6 +258,7 @@ def main():
     reference = json.loads((args.session / "reference.json").read_text())
     names = ["as-is", "rig-toml", "millimetres", "z-up", "half-size"]
     names += [f"without-{c['name']}" for c in cameras]
+    names += ["sideways-cam_2", "sideways-cam_0"]
     names += ["lossy", "warm-light", "dim"]
     if args.only:
         names = [n for n in names if n in args.only]
