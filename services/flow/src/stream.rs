@@ -20,7 +20,7 @@ use nalgebra::{Point3, Vector3};
 use crate::skin::adapt::{SkinAdapter, DEFAULT_ADAPTATION_RATE, DEFAULT_DETECT_EVERY};
 use crate::skin::face_fusion::FusedFaces;
 use crate::skin::faces::FaceBox;
-use crate::skin::model::SkinModel;
+use crate::skin::model::{skin_share_of, SkinModel, SKIN_SHARE_STRIDE};
 use crate::{Coverage, EngineConfig, FlowError, SceneFlowEngine, Temporal, Variant};
 
 /// Camera-frame depths searched on a stream, metres: a signer is between half a metre and
@@ -306,12 +306,6 @@ pub const SKIN_SHARE_REPORT_EVERY: u64 = 300;
 /// the last report is reported at once: a light switched on, a skin-coloured object
 /// entering the view.
 pub const SKIN_SHARE_REPORT_CHANGE: f32 = 0.05;
-/// The skin shares logged are counted on every this-many-th pixel: the log needs a share
-/// to a percent, not an exact count, and must cost the stream nothing. 61 pixels of `f32`
-/// are about four cache lines, so a frame's maps are read a quarter; every 7th pixel
-/// touched every line, 0.8 % of a replay's CPU time. A 1280x720 view still gives 15,000
-/// samples (a prime stride does not follow the image's columns).
-const SKIN_SHARE_LOG_STRIDE: usize = 61;
 /// Face rounds remembered for [`FlowStream::faces_of_last_estimate`]: the estimate is one
 /// frame behind the newest push, and a round can be applied on every frame.
 const FACE_ROUNDS_KEPT: usize = 4;
@@ -377,14 +371,7 @@ impl FaceRound {
 /// configuration's `skin_threshold`) in the frame of the last estimate, counting every
 /// `stride`-th pixel; `None` when the engine has no skin map for it.
 pub fn skin_share(engine: &SceneFlowEngine, camera: usize, stride: usize) -> Option<f32> {
-    let map = engine.skin_map(camera)?;
-    let threshold = engine.config().skin_threshold;
-    let (mut skin, mut seen) = (0usize, 0usize);
-    for &r in map.iter().step_by(stride.max(1)) {
-        seen += 1;
-        skin += usize::from(r > threshold);
-    }
-    Some(skin as f32 / seen.max(1) as f32)
+    Some(skin_share_of(engine.skin_map(camera)?, engine.config().skin_threshold, stride))
 }
 
 /// Models adapted in one round, with the faces they were adapted with.
@@ -860,7 +847,7 @@ impl<M> FlowStream<M> {
     fn report_skin_shares(&mut self) {
         let engine = &self.engine;
         let shares: Vec<f32> =
-            (0..engine.cameras().len()).map(|c| skin_share(engine, c, SKIN_SHARE_LOG_STRIDE).unwrap_or(0.0)).collect();
+            (0..engine.cameras().len()).map(|c| skin_share(engine, c, SKIN_SHARE_STRIDE).unwrap_or(0.0)).collect();
         let due = match &self.skin_reported {
             None => true,
             Some((at, last)) => {

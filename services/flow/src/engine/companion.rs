@@ -9,6 +9,7 @@ use handflow_protocol::Camera;
 use super::{in_image, point_on_ray, ray_grid, FlowError, SceneFlowEngine};
 use crate::config::{Coverage, EngineConfig};
 use crate::matching::camera::LevelProjection;
+use crate::skin::model::{skin_share_of, SKIN_SHARE_STRIDE};
 
 impl SceneFlowEngine {
     /// Builds the companion engine when the rig has a second reference camera: this
@@ -69,9 +70,7 @@ impl SceneFlowEngine {
         }
         Ok(())
     }
-}
 
-impl SceneFlowEngine {
     /// Whether the skin map of `camera`, the companion's reference, can seed rays. Its rays
     /// start where its own view sees skin; until that view's model has been adapted on a face
     /// (its own, or one the other views lend it), the generic prior decides, and under warm
@@ -88,19 +87,14 @@ impl SceneFlowEngine {
         if self.skin_models.get(camera).is_none_or(|m| m.adaptations() > 0) {
             return true;
         }
-        let threshold = self.config.skin_threshold;
         let Some(map) = self.skin_maps[self.ring_newest].get(camera) else { return true };
-        let (mut skin, mut seen) = (0usize, 0usize);
-        for &r in map.iter().step_by(SKIN_SHARE_STRIDE) {
-            seen += 1;
-            skin += usize::from(r > threshold);
-        }
-        let trusted = skin as f32 <= MAX_GENERIC_SKIN_SHARE * seen as f32;
+        let share = skin_share_of(map, self.config.skin_threshold, SKIN_SHARE_STRIDE);
+        let trusted = share <= MAX_GENERIC_SKIN_SHARE;
         if !trusted {
             tracing::debug!(
                 "second reference `{}` waits for a face: its generic skin model marks {:.0} % of the view",
                 self.cameras[camera].name,
-                100.0 * skin as f32 / seen.max(1) as f32
+                100.0 * share
             );
         }
         trusted
@@ -111,10 +105,6 @@ impl SceneFlowEngine {
 /// the companion's rays. People fill a few percent to a fifth of a view in short sleeves;
 /// beyond a quarter the generic prior is taking the room's colours for skin.
 pub const MAX_GENERIC_SKIN_SHARE: f32 = 0.25;
-
-/// Every this-many-th pixel is counted for a skin share: a share to a percent needs a few
-/// thousand samples, not all of them (a prime, so it does not follow the columns).
-const SKIN_SHARE_STRIDE: usize = 61;
 
 /// The camera looking from the most different direction than `reference`'s, under 90
 /// degrees (a camera behind the person sees no more of the hands), with three or more
@@ -218,10 +208,8 @@ mod tests {
         assert!(!engine.reference_sees([0.0, 0.0, -2.0]), "behind the camera");
     }
 
-    #[test]
-    fn a_companion_whose_generic_model_calls_most_of_its_view_skin_waits_for_a_face() {
-        use crate::skin::faces::FaceBox;
-        use crate::skin::model::SkinModel;
+    /// Three 32x24 cameras in a row, skin coverage, the second a companion's reference.
+    fn engine_with_a_companion() -> SceneFlowEngine {
         let cameras = vec![camera("ref", 0.0), camera("second", 0.3), camera("third", -0.1)];
         let config = EngineConfig {
             coverage: Coverage::Skin,
@@ -230,7 +218,14 @@ mod tests {
             coarse_extra_loops: 2,
             ..EngineConfig::default()
         };
-        let mut engine = SceneFlowEngine::new(config, cameras, 0).unwrap();
+        SceneFlowEngine::new(config, cameras, 0).unwrap()
+    }
+
+    #[test]
+    fn a_companion_whose_generic_model_calls_most_of_its_view_skin_waits_for_a_face() {
+        use crate::skin::faces::FaceBox;
+        use crate::skin::model::SkinModel;
+        let mut engine = engine_with_a_companion();
         // A warm wall filling the companion's view: a colour the generic prior calls skin.
         let wall = [222u8, 170, 140];
         assert!(SkinModel::generic(0.0).is_skin(wall));
@@ -254,15 +249,7 @@ mod tests {
 
     #[test]
     fn the_companion_estimates_the_same_frame_on_the_images_it_is_lent() {
-        let cameras = vec![camera("ref", 0.0), camera("second", 0.3), camera("third", -0.1)];
-        let config = EngineConfig {
-            coverage: Coverage::Skin,
-            second_reference: true,
-            pyramid_levels: 2,
-            coarse_extra_loops: 2,
-            ..EngineConfig::default()
-        };
-        let mut engine = SceneFlowEngine::new(config, cameras, 0).unwrap();
+        let mut engine = engine_with_a_companion();
         for f in 0..4 {
             let views = [textured_view(f, 1), textured_view(f + 2, 1), textured_view(f + 4, 1)];
             let views: Vec<&[u8]> = views.iter().map(Vec::as_slice).collect();
