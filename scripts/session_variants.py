@@ -6,6 +6,8 @@ where the variant moves it).
 Each variant changes one thing a user's session may differ in:
   as-is          the session unchanged (the row to compare with)
   rig-toml       its calibration as an anipose / Pose2Sim TOML, in metres
+  pose2sim       laid out as a Pose2Sim project has it: `Calib.toml` with cameras cam_01..,
+                 videos cam01.mp4.., no capture times (frame i of every video is one instant)
   millimetres    the same in millimetres (anipose, FreeMoCap and OpenCV calibrations often are)
   z-up           the world turned to Z-up and moved 2 m (a motion-capture world)
   half-size      videos at half the width and height (640x360 webcams), calibration scaled
@@ -171,7 +173,7 @@ def build(name, session, out, cameras, reference):
     video = None  # (ffmpeg filter, crf) when the videos are re-encoded
     if name == "as-is":
         shutil.copy(session / "camera_array.toml", d / "camera_array.toml")
-    elif name == "rig-toml":
+    elif name in ("rig-toml", "pose2sim"):
         rig = cameras
     elif name == "millimetres":
         rig = [dict(c, translation=[1000.0 * t for t in c["translation"]]) for c in cameras]
@@ -195,6 +197,16 @@ def build(name, session, out, cameras, reference):
         rig, video = cameras, ("eq=brightness=-0.08:contrast=0.7:gamma=0.8", 16)
     else:
         raise SystemExit(f"unknown variant `{name}`")
+    if name == "pose2sim":
+        # Pose2Sim numbers cameras from 1, two digits, and names videos without the underscore.
+        numbered = {c["name"]: f"cam_{i + 1:02d}" for i, c in enumerate(cameras)}
+        write_rig([dict(c, name=numbered[c["name"]]) for c in cameras], d / "Calib.toml")
+        for c in cameras:
+            dst = d / f"{numbered[c['name']].replace('_', '')}.mp4"
+            if not dst.exists():
+                os.symlink((session / f"{c['name']}.mp4").resolve(), dst)
+        (d / "reference.json").write_text(json.dumps(ref))
+        return d
     if rig is not None:
         write_rig(rig, d / "rig.toml")
     for n in kept:
@@ -256,7 +268,7 @@ def main():
         subprocess.run(["cargo", "build", "--release", "-q", "-p", "handflow"], cwd=ROOT, check=True)
     cameras = caliscope_cameras(args.session)
     reference = json.loads((args.session / "reference.json").read_text())
-    names = ["as-is", "rig-toml", "millimetres", "z-up", "half-size"]
+    names = ["as-is", "rig-toml", "pose2sim", "millimetres", "z-up", "half-size"]
     names += [f"without-{c['name']}" for c in cameras]
     names += ["sideways-cam_2", "sideways-cam_0"]
     names += ["lossy", "warm-light", "dim"]
