@@ -169,12 +169,23 @@ def build(name, session, out, cameras, reference):
     names = [c["name"] for c in cameras]
     kept = names
     rig = None
+    calibration = "rig.toml"
+    video_name = {n: n for n in names}  # the file stem each camera's video gets
+    timestamps = True
     ref = reference
     video = None  # (ffmpeg filter, crf) when the videos are re-encoded
     if name == "as-is":
         shutil.copy(session / "camera_array.toml", d / "camera_array.toml")
-    elif name in ("rig-toml", "pose2sim"):
+    elif name == "rig-toml":
         rig = cameras
+    elif name == "pose2sim":
+        # Pose2Sim numbers cameras from 1, two digits, and names videos without the underscore;
+        # its projects carry no capture times.
+        numbered = {n: f"cam_{i + 1:02d}" for i, n in enumerate(names)}
+        rig = [dict(c, name=numbered[c["name"]]) for c in cameras]
+        calibration = "Calib.toml"
+        video_name = {n: numbered[n].replace("_", "") for n in names}
+        timestamps = False
     elif name == "millimetres":
         rig = [dict(c, translation=[1000.0 * t for t in c["translation"]]) for c in cameras]
     elif name == "z-up":
@@ -197,35 +208,26 @@ def build(name, session, out, cameras, reference):
         rig, video = cameras, ("eq=brightness=-0.08:contrast=0.7:gamma=0.8", 16)
     else:
         raise SystemExit(f"unknown variant `{name}`")
-    if name == "pose2sim":
-        # Pose2Sim numbers cameras from 1, two digits, and names videos without the underscore.
-        numbered = {c["name"]: f"cam_{i + 1:02d}" for i, c in enumerate(cameras)}
-        write_rig([dict(c, name=numbered[c["name"]]) for c in cameras], d / "Calib.toml")
-        for c in cameras:
-            dst = d / f"{numbered[c['name']].replace('_', '')}.mp4"
-            if not dst.exists():
-                os.symlink((session / f"{c['name']}.mp4").resolve(), dst)
-        (d / "reference.json").write_text(json.dumps(ref))
-        return d
     if rig is not None:
-        write_rig(rig, d / "rig.toml")
+        write_rig(rig, d / calibration)
     for n in kept:
         src = session / f"{n}.mp4"
-        dst = d / f"{n}.mp4"
+        dst = d / f"{video_name[n]}.mp4"
         this_video = video.get(n) if isinstance(video, dict) else video
         if this_video is None:
             if not dst.exists():
                 os.symlink(src.resolve(), dst)
         else:
             encode(src, dst, *this_video)
-    with open(session / "timestamps.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    with open(d / "timestamps.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
-        w.writeheader()
-        for r in rows:
-            if f"cam_{r['cam_id']}" in kept:
-                w.writerow(r)
+    if timestamps:
+        with open(session / "timestamps.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        with open(d / "timestamps.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+            w.writeheader()
+            for r in rows:
+                if f"cam_{r['cam_id']}" in kept:
+                    w.writerow(r)
     (d / "reference.json").write_text(json.dumps(ref))
     return d
 
