@@ -12,6 +12,7 @@ Each variant changes one thing a user's session may differ in:
   z-up           the world turned to Z-up and moved 2 m (a motion-capture world)
   half-size      videos at half the width and height (640x360 webcams), calibration scaled
   without-CAM    one camera left out (a three-camera rig), once per camera
+  pair-CAM-CAM   two cameras only (a two-webcam rig): the most frontal one with each other one
   sideways-CAM   one camera mounted a quarter turn clockwise (its video turned, calibrated as
                  turned, no mount recorded), for the most frontal camera and a side one
   lossy          videos re-encoded at H.264 CRF 30 (a streaming-quality recording)
@@ -76,6 +77,14 @@ def write_rig(cameras, path):
             "",
         ]
     path.write_text("\n".join(lines))
+
+
+def most_frontal(cameras):
+    """Name of the camera whose optical axis (third row of R) is nearest the mean axis."""
+    axes = [c["rotation"][2] for c in cameras]
+    mean = [sum(a[i] for a in axes) for i in range(3)]
+    best = max(range(len(cameras)), key=lambda k: sum(axes[k][i] * mean[i] for i in range(3)))
+    return cameras[best]["name"]
 
 
 def matmul(a, b):
@@ -196,6 +205,11 @@ def build(name, session, out, cameras, reference):
         left_out = name[len("without-") :]
         kept = [n for n in names if n != left_out]
         rig = [c for c in cameras if c["name"] != left_out]
+    elif name.startswith("pair-"):
+        kept = [n for n in names if n in name[len("pair-") :].split("-")]
+        if len(kept) != 2:
+            raise SystemExit(f"variant `{name}` names no two cameras of the session")
+        rig = [c for c in cameras if c["name"] in kept]
     elif name.startswith("sideways-"):
         turned = name[len("sideways-") :]
         rig = [turned_clockwise(c) if c["name"] == turned else c for c in cameras]
@@ -272,6 +286,10 @@ def main():
     reference = json.loads((args.session / "reference.json").read_text())
     names = ["as-is", "rig-toml", "pose2sim", "millimetres", "z-up", "half-size"]
     names += [f"without-{c['name']}" for c in cameras]
+    # The camera handflow takes as its reference (its optical axis nearest the rig's mean
+    # viewing direction, as `Rig::most_frontal_camera` chooses) with each other camera.
+    frontal = most_frontal(cameras)
+    names += [f"pair-{'-'.join(sorted([frontal, c['name']]))}" for c in cameras if c["name"] != frontal]
     names += ["sideways-cam_2", "sideways-cam_0"]
     names += ["lossy", "warm-light", "dim"]
     if args.only:
