@@ -347,6 +347,11 @@ struct EvalTracksArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
+    /// With --reference: also write each frame's error per object to this CSV file
+    /// (`frame,object,state,error_3d_m,views`), to see when a track was off and which
+    /// cameras saw the object then.
+    #[arg(long, requires = "reference")]
+    per_frame: Option<PathBuf>,
     #[command(flatten)]
     engine: EngineArgs,
 }
@@ -1550,6 +1555,11 @@ fn eval_tracks_against_reference(
         crate::eval::reference::read_handflow_reference(path, rig)?
     };
     let s = evaluate_against_reference(rig, records, &reference);
+    if let Some(out) = &args.per_frame {
+        let rows = crate::eval::tracks_reference::frame_errors(rig, records, &reference);
+        let csv = crate::eval::tracks_reference::frame_errors_csv(&rows);
+        std::fs::write(out, csv).with_context(|| format!("writing the per-frame errors to `{}`", out.display()))?;
+    }
     if args.json {
         out!("{}", serde_json::to_string(&s)?);
         return Ok(());

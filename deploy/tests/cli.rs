@@ -442,7 +442,8 @@ fn bench_flow_on_a_recording_reports_frames_per_second() {
 }
 
 /// `handflow track` writes one JSON object per frame with the documented schema; `eval
-/// tracks` scores it (and names a malformed line); `overlay` draws it; `--csv` has a header.
+/// tracks` scores it (against a reference also frame by frame, and names a malformed line);
+/// `overlay` draws it; `--csv` has a header.
 #[test]
 fn track_writes_json_lines_that_eval_and_overlay_read() {
     let tmp = tempfile::tempdir().unwrap();
@@ -481,6 +482,70 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
     }
     assert!(v["identity_switches"].as_u64().is_some());
     assert!(v["head"]["rmse_3d_m"].as_f64().unwrap() < 0.1, "the head is found: {v}");
+
+    // Against another tracker's reference, frame by frame: a reference that puts the head
+    // 3 cm beside the tracks and the hands on them, seen by `cam0` alone in frame 5.
+    let frames: Vec<serde_json::Value> = lines
+        .iter()
+        .map(|line| {
+            let v: serde_json::Value = serde_json::from_str(line).unwrap();
+            let frame = v["frame"].as_u64().unwrap();
+            let at = |name: &str, dx: f64| {
+                let p = &v["objects"][name]["pos"];
+                let pos = [p[0].as_f64().unwrap() + dx, p[1].as_f64().unwrap(), p[2].as_f64().unwrap()];
+                let views =
+                    if frame == 5 { serde_json::json!({"cam0": [320.0, 240.0]}) } else { serde_json::json!({}) };
+                serde_json::json!({"2d": views, "3d": pos})
+            };
+            serde_json::json!({"frame": frame, "objects": {
+                "head": at("head", 0.03), "left_hand": at("left_hand", 0.0), "right_hand": at("right_hand", 0.0)}})
+        })
+        .collect();
+    let reference = tmp.path().join("reference.json");
+    let file = serde_json::json!({"format": "handflow-reference/1", "palm_width_m": 0.085,
+        "cameras": ["cam0", "cam1", "cam2"], "frames": frames});
+    std::fs::write(&reference, file.to_string()).unwrap();
+    let per_frame = tmp.path().join("per-frame.csv");
+    let r = handflow(&[
+        "eval",
+        "tracks",
+        "--recording",
+        arg(&rec),
+        "--tracks",
+        arg(&tracks),
+        "--reference",
+        arg(&reference),
+        "--per-frame",
+        arg(&per_frame),
+    ]);
+    assert!(r.status.success(), "{}", describe(&r));
+    let rows = std::fs::read_to_string(&per_frame).unwrap();
+    let rows: Vec<Vec<&str>> = rows.lines().map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows[0], ["frame", "object", "state", "error_3d_m", "views"]);
+    assert_eq!(rows.len(), 1 + 8 * 3, "a row per frame and object");
+    for row in &rows[1..] {
+        let tracked = row[2] != "lost";
+        let error: Option<f64> = row[3].parse().ok();
+        match (row[1], tracked) {
+            ("head", true) => assert!((error.unwrap() - 0.03).abs() < 1e-3, "{row:?}"),
+            (_, true) => assert!(error.unwrap() < 1e-3, "{row:?}"),
+            (_, false) => assert_eq!(error, None, "a lost estimate is a miss, not a distance: {row:?}"),
+        }
+        assert_eq!(row[4], if row[0] == "5" { "cam0" } else { "" }, "{row:?}");
+    }
+    check_failure(
+        &handflow(&[
+            "eval",
+            "tracks",
+            "--recording",
+            arg(&rec),
+            "--tracks",
+            arg(&tracks),
+            "--per-frame",
+            arg(&per_frame),
+        ]),
+        &["--reference"],
+    );
 
     let overlays = tmp.path().join("overlay");
     let r = handflow(&["overlay", "--recording", arg(&rec), "--tracks", arg(&tracks), "--out", arg(&overlays)]);

@@ -139,6 +139,75 @@ pub fn evaluate_against_reference(rig: &Rig, records: &[TrajectoryRecord], refer
     }
 }
 
+/// One object in one frame the reference lists: what `--per-frame` writes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameError {
+    /// Frame number.
+    pub frame: u64,
+    /// Object name ([`OBJECTS`]).
+    pub object: &'static str,
+    /// The estimate's state; `None` when the trajectory file has no record of the object.
+    pub state: Option<TrackState>,
+    /// 3D distance from the reference, metres: `None` without a 3D reference point, or for
+    /// an estimate that is lost or missing (a miss).
+    pub error_3d_m: Option<f64>,
+    /// Cameras in which the reference has the object (rig order).
+    pub views: Vec<String>,
+}
+
+/// Per frame and object, what [`evaluate_against_reference`] sums: whether there was an
+/// estimate, its 3D distance and the views that saw the object. A summary says how often
+/// a track was off; this says when, and whether the camera the engine casts its rays from
+/// ([`Rig::most_frontal_camera`]) saw the object then.
+pub fn frame_errors(rig: &Rig, records: &[TrajectoryRecord], reference: &Reference) -> Vec<FrameError> {
+    let by_frame: BTreeMap<u64, &TrajectoryRecord> = records.iter().map(|r| (r.frame, r)).collect();
+    let mut rows = Vec::new();
+    for (frame, objects) in &reference.frames {
+        for (k, object) in objects.iter().enumerate() {
+            let Some(object) = object else { continue };
+            let sample = by_frame.get(frame).and_then(|r| r.objects.get(OBJECTS[k]));
+            let estimate = sample.filter(|o| o.state != TrackState::Lost).map(|o| Point3::from(o.pos));
+            let error_3d_m = match (estimate, object.point) {
+                (Some(e), Some(truth)) => Some((e - truth).norm()),
+                _ => None,
+            };
+            let views = rig
+                .cameras
+                .iter()
+                .zip(&object.pixels)
+                .filter(|(_, p)| p.is_some())
+                .map(|(c, _)| c.name.clone())
+                .collect();
+            rows.push(FrameError {
+                frame: *frame,
+                object: OBJECTS[k],
+                state: sample.map(|o| o.state),
+                error_3d_m,
+                views,
+            });
+        }
+    }
+    rows
+}
+
+/// [`frame_errors`] as CSV: `frame,object,state,error_3d_m,views`, the state `tracked`,
+/// `predicted`, `lost` or `missing`, the error empty where there is none, the views joined
+/// by `+`.
+pub fn frame_errors_csv(rows: &[FrameError]) -> String {
+    let mut out = String::from("frame,object,state,error_3d_m,views\n");
+    for r in rows {
+        let state = match r.state {
+            Some(TrackState::Tracked) => "tracked",
+            Some(TrackState::Predicted) => "predicted",
+            Some(TrackState::Lost) => "lost",
+            None => "missing",
+        };
+        let error = r.error_3d_m.map_or(String::new(), |e| format!("{e:.4}"));
+        out.push_str(&format!("{},{},{state},{error},{}\n", r.frame, r.object, r.views.join("+")));
+    }
+    out
+}
+
 fn score_object(
     cameras: &[Camera],
     palm_m: f64,
@@ -323,6 +392,33 @@ mod tests {
         // 3 cm in depth moves the projection far less than a third of a palm.
         assert_eq!(s.right_hand.agreement, Some(1.0));
         assert_eq!(s.identity_switches, 0);
+    }
+
+    #[test]
+    fn per_frame_rows_say_when_a_track_was_off_and_which_views_saw_it() {
+        let (rig, records, reference) = case();
+        let rows = frame_errors(&rig, &records, &reference);
+        // Head and left hand in all 10 frames, the right hand in frames 0..4.
+        assert_eq!(rows.len(), 25);
+        let row = |frame: u64, object: &str| rows.iter().find(|r| r.frame == frame && r.object == object).unwrap();
+        assert!((row(2, "head").error_3d_m.unwrap() - 0.025).abs() < 1e-12);
+        assert_eq!(row(2, "head").state, Some(TrackState::Tracked));
+        assert_eq!((row(3, "left_hand").state, row(3, "left_hand").error_3d_m), (Some(TrackState::Lost), None));
+        assert_eq!((row(9, "head").state, row(9, "head").error_3d_m), (None, None), "missing from the tracks");
+        // Frame 4's right hand: one view, no 3D point to measure against.
+        assert_eq!(row(4, "right_hand").views, vec![rig.cameras[0].name.clone()]);
+        assert_eq!(row(4, "right_hand").error_3d_m, None);
+        assert_eq!(row(0, "right_hand").views.len(), rig.cameras.len());
+        // The same rows as the summary's: the head's frames within 5 cm.
+        let within = rows.iter().filter(|r| r.object == "head" && r.error_3d_m.is_some_and(|e| e <= 0.05)).count();
+        let s = evaluate_against_reference(&rig, &records, &reference);
+        assert_eq!(Some(within as f64 / 10.0), s.head.within_5cm);
+        let csv = frame_errors_csv(&rows);
+        let lines: Vec<&str> = csv.lines().collect();
+        assert_eq!(lines[0], "frame,object,state,error_3d_m,views");
+        assert_eq!(lines.len(), 26);
+        assert!(csv.contains("3,left_hand,lost,,"), "{csv}");
+        assert!(csv.contains("9,head,missing,,"), "{csv}");
     }
 
     #[test]
