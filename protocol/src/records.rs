@@ -39,6 +39,16 @@ impl TrackState {
             _ => TrackState::Lost,
         }
     }
+
+    /// The state's name as the trajectory file writes it (`tracked`, `predicted`, `lost`),
+    /// for the tables and CSV files that spell it out.
+    pub fn name(self) -> &'static str {
+        match self {
+            TrackState::Tracked => "tracked",
+            TrackState::Predicted => "predicted",
+            TrackState::Lost => "lost",
+        }
+    }
 }
 
 impl ObjectSample {
@@ -58,4 +68,16 @@ pub fn objects_by_label(
         .zip(objects)
         .map(|(l, o)| ((*l).to_owned(), ObjectSample::from_wire(o)))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_states_name_is_the_one_the_trajectory_file_writes() {
+        for state in [TrackState::Tracked, TrackState::Predicted, TrackState::Lost] {
+            assert_eq!(serde_json::to_value(state).unwrap(), state.name());
+        }
+    }
 }

@@ -196,12 +196,7 @@ pub fn frame_errors(rig: &Rig, records: &[TrajectoryRecord], reference: &Referen
 pub fn frame_errors_csv(rows: &[FrameError]) -> String {
     let mut out = String::from("frame,object,state,error_3d_m,views\n");
     for r in rows {
-        let state = match r.state {
-            Some(TrackState::Tracked) => "tracked",
-            Some(TrackState::Predicted) => "predicted",
-            Some(TrackState::Lost) => "lost",
-            None => "missing",
-        };
+        let state = r.state.map_or("missing", TrackState::name);
         let error = r.error_3d_m.map_or(String::new(), |e| format!("{e:.4}"));
         out.push_str(&format!("{},{},{state},{error},{}\n", r.frame, r.object, r.views.join("+")));
     }

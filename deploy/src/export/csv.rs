@@ -5,7 +5,7 @@ use std::io::Write;
 
 use anyhow::{Context, Result};
 use handflow_protocol::messages::OBJECT_LABELS;
-use handflow_publish::{TrackState, TrajectoryRecord};
+use handflow_publish::TrajectoryRecord;
 
 /// Per-object columns, after `frame,t`.
 const FIELDS: [&str; 8] = ["x", "y", "z", "vx", "vy", "vz", "confidence", "state"];
@@ -26,11 +26,7 @@ pub fn csv_line(record: &TrajectoryRecord) -> Result<String> {
     let mut line = format!("{},{}", record.frame, record.t);
     for label in OBJECT_LABELS {
         let o = record.objects.get(label).with_context(|| format!("frame {}: no `{label}`", record.frame))?;
-        let state = match o.state {
-            TrackState::Tracked => "tracked",
-            TrackState::Predicted => "predicted",
-            TrackState::Lost => "lost",
-        };
+        let state = o.state.name();
         line.push_str(&format!(
             ",{},{},{},{},{},{},{},{state}",
             o.pos[0], o.pos[1], o.pos[2], o.vel[0], o.vel[1], o.vel[2], o.confidence
