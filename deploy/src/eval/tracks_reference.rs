@@ -105,13 +105,9 @@ pub fn evaluate_against_reference(rig: &Rig, records: &[TrajectoryRecord], refer
     let mut switches = 0;
     let mut labelling = [0usize, 1, 2];
     for (frame, objects) in &reference.frames {
-        let record = by_frame.get(frame);
         let mut estimates = [None; 3];
         for (k, object) in objects.iter().enumerate() {
-            let estimate = record
-                .and_then(|r| r.objects.get(OBJECTS[k]))
-                .filter(|o| o.state != TrackState::Lost)
-                .map(|o: &ObjectSample| Point3::from(o.pos));
+            let estimate = estimate_of(sample_of(&by_frame, *frame, k));
             estimates[k] = estimate;
             let Some(object) = object else { continue };
             score_object(&rig.cameras, palm_m, object, estimate, &mut sums[k]);
@@ -137,6 +133,16 @@ pub fn evaluate_against_reference(rig: &Rig, records: &[TrajectoryRecord], refer
         frames: reference.frames.len(),
         reference: reference.definition.clone(),
     }
+}
+
+/// Object `k`'s sample ([`OBJECTS`] order) in the record of `frame`, if the trajectory file has it.
+fn sample_of<'a>(by_frame: &BTreeMap<u64, &'a TrajectoryRecord>, frame: u64, k: usize) -> Option<&'a ObjectSample> {
+    by_frame.get(&frame).and_then(|r| r.objects.get(OBJECTS[k]))
+}
+
+/// The position a sample estimates: none for a lost or missing one (a miss).
+fn estimate_of(sample: Option<&ObjectSample>) -> Option<Point3<f64>> {
+    sample.filter(|o| o.state != TrackState::Lost).map(|o| Point3::from(o.pos))
 }
 
 /// One object in one frame the reference lists: what `--per-frame` writes.
@@ -165,9 +171,8 @@ pub fn frame_errors(rig: &Rig, records: &[TrajectoryRecord], reference: &Referen
     for (frame, objects) in &reference.frames {
         for (k, object) in objects.iter().enumerate() {
             let Some(object) = object else { continue };
-            let sample = by_frame.get(frame).and_then(|r| r.objects.get(OBJECTS[k]));
-            let estimate = sample.filter(|o| o.state != TrackState::Lost).map(|o| Point3::from(o.pos));
-            let error_3d_m = match (estimate, object.point) {
+            let sample = sample_of(&by_frame, *frame, k);
+            let error_3d_m = match (estimate_of(sample), object.point) {
                 (Some(e), Some(truth)) => Some((e - truth).norm()),
                 _ => None,
             };
