@@ -9,7 +9,7 @@ use handflow_protocol::Camera;
 use nalgebra::{Matrix3, Point3, Vector3};
 
 use crate::em::{extremity_means, farthest_point_seeds, fit_mixture, side_extremity, Component, EmConfig, EmFit};
-use crate::hand::{continuity_weight, locate_hand};
+use crate::hand::{continuity_weight, locate_hand, HAND_LENGTH_M, HEAD_CLEARANCE_M};
 use crate::tracks::{HeadAnchor, Measurement, NotStarted, State, Tracker, TrackerConfig};
 use crate::velocity::{VelocityFilter, HAND_ACCELERATION_DENSITY, HEAD_ACCELERATION_DENSITY, REFERENCE_INTERVAL_S};
 use crate::WeightedPoint;
@@ -118,6 +118,9 @@ pub struct ClusterStage {
     reported: Option<StartStatus>,
     /// Per object, the velocity it is published with ([`VelocityFilter`]).
     velocities: [VelocityFilter; 3],
+    /// Per object, whether its track, since it last started, has held a hand's mass (see
+    /// [`ClusterStage::small_since_start`]).
+    hand_sized: [bool; 3],
 }
 
 /// Whether the tracks run, and if not why, as [`ClusterStage::start_status`] gives it.
@@ -178,6 +181,7 @@ impl ClusterStage {
             reported: None,
             velocities: [HEAD_ACCELERATION_DENSITY, HAND_ACCELERATION_DENSITY, HAND_ACCELERATION_DENSITY]
                 .map(VelocityFilter::new),
+            hand_sized: [false; 3],
         }
     }
 
@@ -264,6 +268,8 @@ impl ClusterStage {
         // its side's end of the person's skin, and a clearly better-explaining fit is kept.
         // Only then: tried on every frame, the second start took a blob of points at a false
         // depth below a hand for the hand in some seeds of the shared real session.
+        // A hand whose track has been small since it started gets a second start of its own.
+        let small_from_start = self.small_since_start();
         let mut fit = initial.and_then(|init| {
             let first = self.fit_seeded(init, &returning);
             let starved = match (&first, self.tracker.tracks()) {
@@ -273,10 +279,29 @@ impl ClusterStage {
                 }),
                 _ => false,
             };
-            if !starved {
-                return first;
+            if starved {
+                let second = self.fit_seeded(self.side_start(init), &returning);
+                return better_fit(first, second);
             }
-            let second = self.fit_seeded(self.side_start(init), &returning);
+            let Some(hand_mass) = small_from_start.iter().position(|&s| s).map(|k| self.hand_mass(3 - k)) else {
+                return first;
+            };
+            // Only the small hand is sought again, on its side of the head, away from the
+            // piece it holds, from the other hand (whose track has held a hand all along) and
+            // from the head; only a fit that gives it half a hand's mass beside the head (not
+            // on a piece of it, nor on the neck below it) is a hand found.
+            let start = self.piece_start(init, small_from_start);
+            let second = self.fit_seeded(start, &returning).filter(|fit| {
+                let head = &fit.components[0];
+                (1..3).all(|k| {
+                    let c = &fit.components[k];
+                    !small_from_start[k]
+                        || (c.mass >= STARVED_HAND_SHARE * hand_mass
+                            && (c.position - head.position).norm() > HEAD_CLEARANCE_M
+                            && (c.position - head.position).dot(&self.side_of(k)) > HEAD_MAX_RADIUS_M
+                            && !behind_head(head, c, &self.eye))
+                })
+            });
             better_fit(first, second)
         });
         let raw = fit.clone();
@@ -368,6 +393,34 @@ impl ClusterStage {
         estimates
     }
 
+    /// Per object, whether it is a hand whose track has held less than half the other hand's
+    /// usual mass ever since it started (`true`), and records which tracks have held a
+    /// hand's mass. A track that starts on a piece of an arm (the forearm by the elbow at the
+    /// reference view's border while the hand lies below it, on the shared real session and
+    /// its half-size and lossy copies) keeps its piece when the hand rises into view: the
+    /// predictions seed the fit, and the hand's skin joins the head's component. Such a hand
+    /// gets the second start every frame until it holds a hand's mass; a hand that held one
+    /// and then shrinks (turned edge-on, half hidden) is judged by its own usual mass.
+    fn small_since_start(&mut self) -> [bool; 3] {
+        let Some(tracks) = self.tracker.tracks() else {
+            self.hand_sized = [false; 3];
+            return [false; 3];
+        };
+        let mut small = [false; 3];
+        for k in 1..3 {
+            let other = &tracks[3 - k];
+            if tracks[k].state != State::Tracked {
+                self.hand_sized[k] = false;
+            } else if other.state == State::Tracked && tracks[k].typical_mass < STARVED_HAND_SHARE * other.typical_mass
+            {
+                small[k] = !self.hand_sized[k];
+            } else {
+                self.hand_sized[k] = true;
+            }
+        }
+        small
+    }
+
     /// Seeds for head and hands with each hand at its side's end of the skin within reach
     /// of the head (where a prediction cannot be trusted to be), the head as in `init`.
     fn side_start(&self, init: [(Vector3<f64>, Vector3<f64>); 3]) -> [(Vector3<f64>, Vector3<f64>); 3] {
@@ -380,6 +433,50 @@ impl ClusterStage {
             }
         }
         start
+    }
+
+    /// The usual mass of the track of object `k` (0 before tracks start).
+    fn hand_mass(&self, k: usize) -> f64 {
+        self.tracker.tracks().map_or(0.0, |tracks| tracks[k].typical_mass)
+    }
+
+    /// Seeds as in `init` except for each hand marked `small`, which goes to its side's end
+    /// of the skin within reach of the head, among the points farther than a hand's length
+    /// from both hands' seeds (the piece it holds, and the other hand) and clear of the head.
+    fn piece_start(
+        &mut self,
+        init: [(Vector3<f64>, Vector3<f64>); 3],
+        small: [bool; 3],
+    ) -> [(Vector3<f64>, Vector3<f64>); 3] {
+        let mut start = init;
+        let reach = self.tracker.config().reach_m;
+        let hands = [init[1].0, init[2].0];
+        self.near_points.clear();
+        self.near_points.extend(
+            self.points
+                .iter()
+                .filter(|p| {
+                    hands.iter().all(|h| (p.position - h).norm() > HAND_LENGTH_M)
+                        && (p.position - init[0].0).norm() > HEAD_CLEARANCE_M
+                })
+                .copied(),
+        );
+        for k in (1..3).filter(|&k| small[k]) {
+            let side = self.side_of(k);
+            if let Some(found) = side_extremity(&self.near_points, init[0].0, reach, self.up, side) {
+                start[k] = found;
+            }
+        }
+        start
+    }
+
+    /// The direction from the head to hand `k`'s side of the body (1 left, 2 right).
+    fn side_of(&self, k: usize) -> Vector3<f64> {
+        if k == 1 {
+            self.signer_left
+        } else {
+            -self.signer_left
+        }
     }
 
     /// The mixture fitted from these seeds for head and hands, with the spare and clutter
@@ -551,19 +648,13 @@ pub fn head_with_its_pieces(
     eye: &Point3<f64>,
 ) -> Option<Component> {
     let &main = components.get(head)?;
-    let Some(sight) = (main.position - eye.coords).try_normalize(1e-9) else { return Some(main) };
     let is_piece = |j: usize, c: &Component| {
-        let d = c.position - main.position;
-        let along = d.dot(&sight);
-        let across = (d - sight * along).norm();
         j != head
             && !hands.contains(&Some(j))
             && !c.empty
             && c.mass > 0.0
             && c.mass < main.mass
-            && along > 0.0
-            && along <= 2.0 * HEAD_MAX_RADIUS_M
-            && across <= HEAD_MAX_RADIUS_M
+            && behind_head(&main, c, eye)
     };
     let parts: Vec<&Component> =
         components.iter().enumerate().filter(|&(j, c)| j == head || is_piece(j, c)).map(|(_, c)| c).collect();
@@ -586,6 +677,17 @@ pub fn head_with_its_pieces(
     whole.mass = mass;
     whole.mixing = parts.iter().map(|c| c.mixing).sum();
     Some(whole)
+}
+
+/// Whether component `c` lies where a piece of the head `main` would (see
+/// [`head_with_its_pieces`]): behind its centroid along the line of sight from `eye` by at
+/// most a head's depth, and within a head's radius of it across the view.
+fn behind_head(main: &Component, c: &Component, eye: &Point3<f64>) -> bool {
+    let Some(sight) = (main.position - eye.coords).try_normalize(1e-9) else { return false };
+    let d = c.position - main.position;
+    let along = d.dot(&sight);
+    let across = (d - sight * along).norm();
+    along > 0.0 && along <= 2.0 * HEAD_MAX_RADIUS_M && across <= HEAD_MAX_RADIUS_M
 }
 
 /// Moves a cluster's centre from the surface the reference camera sees to the object's
@@ -880,6 +982,50 @@ mod tests {
         let hand = Vector3::new(0.218, 1.438, 0.0);
         assert!((back[1].position - hand).norm() < 0.03, "left hand at {:?}", back[1].position);
         assert!((back[0].position - Vector3::new(0.018, 1.638, 0.0)).norm() < 0.03, "head at {:?}", back[0].position);
+    }
+
+    #[test]
+    fn a_hand_whose_track_started_on_a_piece_of_its_arm_takes_the_hand_when_it_rises() {
+        let blob = |x: f32, y: f32, n: usize| {
+            (0..n).map(move |i| ScenePoint {
+                position: [x + (i % 10) as f32 * 0.004, y + (i / 10) as f32 * 0.004, 0.0],
+                velocity: [0.0; 3],
+                weight: 1.0,
+                skin: 1.0,
+            })
+        };
+        let mut stage = ClusterStage::new(&reference(0.0), Vector3::y(), false).with_hand_localisation(false);
+        let fps = 6.0;
+        let mut t = 0.0;
+        let face = Some(FaceCue::new([0.018, 1.638, 0.02], 0, fps));
+        // The signer's left hand (+X) lies below the reference view: only a piece of its
+        // forearm by the elbow is seen, a fifth of a hand's skin, and its track starts there.
+        let body = || {
+            blob(0.0, 1.6, 200)
+                .chain(blob(-0.3, 1.1, 200))
+                .chain(blob(0.35, 0.95, 40))
+                .chain(blob(-0.1, 2.2, 40))
+                .chain(blob(3.0, 0.5, 30))
+                .chain(blob(-2.5, 2.5, 30))
+        };
+        for _ in 0..4 {
+            let points: Vec<ScenePoint> = body().collect();
+            let start = stage.update(t, fps, 0.0, &points, face);
+            assert_eq!(start[1].state, State::Tracked);
+            assert!((start[1].position - Vector3::new(0.368, 0.958, 0.0)).norm() < 0.03, "{:?}", start[1].position);
+            t += 1.0 / fps;
+        }
+        // The hand rises into view, nearer the head than the piece it left.
+        let mut now = None;
+        for _ in 0..2 {
+            let points: Vec<ScenePoint> = body().chain(blob(0.2, 1.42, 200)).collect();
+            now = Some(stage.update(t, fps, 0.0, &points, face));
+            t += 1.0 / fps;
+        }
+        let now = now.expect("updated");
+        let hand = Vector3::new(0.218, 1.438, 0.0);
+        assert!((now[1].position - hand).norm() < 0.03, "left hand at {:?}", now[1].position);
+        assert!((now[0].position - Vector3::new(0.018, 1.638, 0.0)).norm() < 0.03, "head at {:?}", now[0].position);
     }
 
     #[test]
