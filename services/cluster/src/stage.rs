@@ -761,6 +761,16 @@ mod tests {
         Camera::new("ref", 640, 480, k, Distortion::default(), r, -(r * position)).expect("valid camera")
     }
 
+    /// `n` points at rest in rows of ten, 4 mm apart, from (`x`, `y`, 0): a blob of skin.
+    fn still_blob(x: f32, y: f32, n: usize) -> impl Iterator<Item = ScenePoint> {
+        (0..n).map(move |i| ScenePoint {
+            position: [x + (i % 10) as f32 * 0.004, y + (i / 10) as f32 * 0.004, 0.0],
+            velocity: [0.0; 3],
+            weight: 1.0,
+            skin: 1.0,
+        })
+    }
+
     /// The component EM would fit to `points`: their mean and covariance.
     fn component_of(points: &[Vector3<f64>]) -> Component {
         let n = points.len() as f64;
@@ -939,14 +949,7 @@ mod tests {
 
     #[test]
     fn a_lost_hand_is_found_again_beside_the_head_even_with_clutter_far_away() {
-        let blob = |x: f32, y: f32, n: usize| {
-            (0..n).map(move |i| ScenePoint {
-                position: [x + (i % 10) as f32 * 0.004, y + (i / 10) as f32 * 0.004, 0.0],
-                velocity: [0.0; 3],
-                weight: 1.0,
-                skin: 1.0,
-            })
-        };
+        let blob = still_blob;
         // Skin-coloured clutter out of reach takes the spare components' seeds.
         let clutter = || blob(3.0, 0.5, 30).chain(blob(-2.5, 2.5, 30));
         let mut stage = ClusterStage::new(&reference(0.0), Vector3::y(), false).with_hand_localisation(false);
@@ -986,14 +989,7 @@ mod tests {
 
     #[test]
     fn a_hand_whose_track_started_on_a_piece_of_its_arm_takes_the_hand_when_it_rises() {
-        let blob = |x: f32, y: f32, n: usize| {
-            (0..n).map(move |i| ScenePoint {
-                position: [x + (i % 10) as f32 * 0.004, y + (i / 10) as f32 * 0.004, 0.0],
-                velocity: [0.0; 3],
-                weight: 1.0,
-                skin: 1.0,
-            })
-        };
+        let blob = still_blob;
         let mut stage = ClusterStage::new(&reference(0.0), Vector3::y(), false).with_hand_localisation(false);
         let fps = 6.0;
         let mut t = 0.0;
