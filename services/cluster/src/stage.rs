@@ -250,7 +250,7 @@ impl ClusterStage {
                 if tracks[k].state == State::Tracked {
                     continue;
                 }
-                let side = if k == 1 { self.signer_left } else { -self.signer_left };
+                let side = self.side_of(k);
                 let reach = self.tracker.config().reach_m;
                 if let Some(seed) = side_extremity(&self.points, init[0].0, reach, self.up, side) {
                     if tracks[k].state == State::Lost {
@@ -427,7 +427,7 @@ impl ClusterStage {
         let mut start = init;
         let reach = self.tracker.config().reach_m;
         for (k, seed) in start.iter_mut().enumerate().skip(1) {
-            let side = if k == 1 { self.signer_left } else { -self.signer_left };
+            let side = self.side_of(k);
             if let Some(found) = side_extremity(&self.points, init[0].0, reach, self.up, side) {
                 *seed = found;
             }
