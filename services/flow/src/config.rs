@@ -91,12 +91,6 @@ pub struct EngineConfig {
     /// `None`: as `coarse_extra_loops`). A stream can afford fewer: the carried posterior
     /// already holds most of what the exploration of a first frame finds.
     pub warm_coarse_extra_loops: Option<usize>,
-    /// Noise loops on the levels between the coarsest and the finest when the previous
-    /// frame's posterior is the prior (default `None`: `noise_loops`, as on every level). A
-    /// first frame needs them to carry random hypotheses from the coarse search's scale down
-    /// to the finest; a warm frame's carried particles already sit within the finest level's
-    /// reach, and the coarsest level's loops hand the rest of the search down to it.
-    pub warm_middle_loops: Option<usize>,
     /// Extra passes over a frame estimated without a temporal prior (the first of a
     /// stream), each taking the previous pass's posterior as its prior, held still (default
     /// 0). A stream's later frames inherit several frames of evidence through the carried
@@ -258,7 +252,6 @@ impl Default for EngineConfig {
             noise_loops: 2,
             coarse_extra_loops: 7,
             warm_coarse_extra_loops: None,
-            warm_middle_loops: None,
             cold_start_passes: 0,
             estimate_first_frame: false,
             per_level_rays: true,

@@ -91,16 +91,6 @@ pub fn warm_coarse_extra_loops_for_rate(fps: f64) -> usize {
     (loops as usize).min(MAX_WARM_COARSE_EXTRA_LOOPS)
 }
 
-/// Noise loops on a stream's middle levels (between the coarsest and the working level) on
-/// warm frames: none. Where the finest ray grid is coarser than the working level's pixels
-/// (`ray_subsampling`, the shared real session's 1280x720 webcams) the middle level matches
-/// those rays at half the working level's resolution, and its two loops cost as much as the
-/// working level's. Measured on that session (six seeds, BENCHMARKS.md): `track` 1.15x
-/// faster, the head 0.8, the left hand 0.1 and the right hand 1.5 points lower within 5 cm,
-/// every target it met still met; a first frame keeps them (its random hypotheses need the
-/// middle scale), and so does a live stream ([`live_stream_engine_config`]).
-pub const STREAM_WARM_MIDDLE_LOOPS: usize = 0;
-
 /// Scene Particles per ray on streams: 6 instead of the engine's 10. Every preset stays on
 /// target with 6, as with 8, and so does every unseen scene that was (some figures a little
 /// lower, the hardest scene's higher); the engine is 1.15 to 1.28x faster than with 8: what
@@ -167,7 +157,6 @@ pub fn stream_engine_config(
         // points within 5 cm, the head 2.0 (six seeds, BENCHMARKS.md).
         pyramid_levels: finest_level + ray_subsampling + 2,
         warm_coarse_extra_loops: Some(warm_coarse_extra_loops_for_rate(fps).min(defaults.coarse_extra_loops)),
-        warm_middle_loops: Some(STREAM_WARM_MIDDLE_LOOPS),
         cold_start_passes: STREAM_COLD_START_PASSES,
         estimate_first_frame: true,
         refine_radius: 0,
@@ -190,20 +179,14 @@ pub fn stream_engine_config(
 pub const LIVE_COLD_START_PASSES: usize = 2;
 
 /// The engine configuration of a live stream: [`stream_engine_config`] keeping the full
-/// warm search ([`MAX_WARM_COARSE_EXTRA_LOOPS`] and the middle levels' loops) whatever the
-/// rate, with
+/// warm search ([`MAX_WARM_COARSE_EXTRA_LOOPS`]) whatever the rate, with
 /// [`LIVE_COLD_START_PASSES`]. Live, the newest frame set wins: on a loaded machine
 /// consecutive estimates can be several frame intervals apart, so the camera's rate says
 /// nothing of how far the prediction can miss.
 pub fn live_stream_engine_config(variant: Variant, fps: f64, cameras: &[Camera], reference: usize) -> EngineConfig {
     let config = stream_engine_config(variant, None, fps, cameras, reference);
     let full = MAX_WARM_COARSE_EXTRA_LOOPS.min(config.coarse_extra_loops);
-    EngineConfig {
-        warm_coarse_extra_loops: Some(full),
-        warm_middle_loops: None,
-        cold_start_passes: LIVE_COLD_START_PASSES,
-        ..config
-    }
+    EngineConfig { warm_coarse_extra_loops: Some(full), cold_start_passes: LIVE_COLD_START_PASSES, ..config }
 }
 
 /// Width of an adult's palm, metres (the reference's palm centre sits in it).
@@ -1175,9 +1158,6 @@ mod tests {
         assert_eq!(stream_engine_config(Variant::Handflow, None, 6.0, &cams, 1).warm_coarse_extra_loops, Some(2));
         // Live, estimates can be frames apart: the full search at any rate.
         assert_eq!(live_stream_engine_config(Variant::Handflow, 30.0, &cams, 1).warm_coarse_extra_loops, Some(2));
-        // A recording's warm frames skip the middle levels; a live stream keeps them.
-        assert_eq!(stream_engine_config(Variant::Handflow, None, 6.0, &cams, 1).warm_middle_loops, Some(0));
-        assert_eq!(live_stream_engine_config(Variant::Handflow, 6.0, &cams, 1).warm_middle_loops, None);
         // Live, the first estimates come out after a few frames' work, not 26.
         assert_eq!(live_stream_engine_config(Variant::Handflow, 30.0, &cams, 1).cold_start_passes, 2);
         assert_eq!(stream_engine_config(Variant::Handflow, None, 30.0, &cams, 1).cold_start_passes, 8);
