@@ -27,7 +27,13 @@ Reports frame sets per second, the wall clock from opening the videos to the las
 frame set (the trackers' model loading, decoding and triangulation included; Python's start-up
 and imports not), and per object the number of frame sets it was triangulated in. `--out FILE`
 writes per frame set a JSON line with each triangulated object's 3D point (calibration's world
-frame, metres), its 2D points (pixels) and their mean reprojection error.
+frame, metres), its 2D points (pixels) and their mean reprojection error. `--openpose DIR` writes
+each view's landmarks as OpenPose would (one folder per camera, one `*_keypoints.json` per frame):
+the body in BODY_25's order (a landmark MediaPipe rates under 0.5 visible left out, confidence 0,
+as OpenPose leaves out what it does not see) and each hand's 21 landmarks in
+`hand_left_keypoints_2d` / `hand_right_keypoints_2d` (confidence 1; 63 zeros for a hand not
+found, as OpenPose run with `--hand` writes), so `handflow eval tracks --reference DIR` can be
+checked against this reference in OpenPose's form.
 """
 
 import argparse
@@ -55,6 +61,11 @@ CALIBRATION_NAMES = ("camera_array.toml", "rig.toml")
 OBJECTS = ("head", "left_hand", "right_hand")
 PALM_LANDMARKS = (0, 5, 9, 13, 17)
 LEFT_EAR, RIGHT_EAR = 7, 8
+# BODY_25 keypoint -> MediaPipe pose landmark, for `--openpose`: nose, right shoulder, elbow,
+# wrist, left shoulder, elbow, wrist, right hip, left hip, right eye, left eye, right ear, left ear.
+BODY_25_FROM_MEDIAPIPE = {0: 0, 2: 12, 3: 14, 4: 16, 5: 11, 6: 13, 7: 15, 9: 24, 12: 23, 15: 5, 16: 2, 17: 8, 18: 7}
+HAND_LANDMARKS = 21
+MIN_VISIBILITY = 0.5
 # Encoders pad frame sizes to multiples of 16: a video this much off its calibration's size is
 # the same image (handflow accepts it too); more is another resolution, which would need the
 # intrinsics scaled.
@@ -215,8 +226,9 @@ def open_video(camera):
 # --- Landmarks and triangulation -------------------------------------------------------------
 
 
-def observe(capture, tracker):
-    """The next frame's objects in pixels ({name: (x, y)}), or None at the end of the video."""
+def observe(capture, tracker, keypoints=None):
+    """The next frame's objects in pixels ({name: (x, y)}), or None at the end of the video.
+    With `keypoints` (a dict), also puts there the view's OpenPose person (see `--openpose`)."""
     ok, frame = capture.read()
     if not ok:
         return None
@@ -231,6 +243,8 @@ def observe(capture, tracker):
             height * np.mean([landmarks.landmark[i].y for i in indices]) - 0.5,
         )
 
+    if keypoints is not None:
+        keypoints.update(openpose_person(results, width, height))
     seen = {}
     if results.pose_landmarks is not None:
         seen["head"] = pixels(results.pose_landmarks, (LEFT_EAR, RIGHT_EAR))
@@ -239,6 +253,38 @@ def observe(capture, tracker):
     if results.right_hand_landmarks is not None:
         seen["right_hand"] = pixels(results.right_hand_landmarks, PALM_LANDMARKS)
     return seen
+
+
+def openpose_person(results, width, height):
+    """One view's Holistic landmarks as an OpenPose person: BODY_25 body and 21-point hands."""
+
+    def pixel(landmark):
+        return [round(width * landmark.x - 0.5, 2), round(height * landmark.y - 0.5, 2)]
+
+    pose = [0.0] * (3 * 25)
+    if results.pose_landmarks is not None:
+        for keypoint, index in BODY_25_FROM_MEDIAPIPE.items():
+            landmark = results.pose_landmarks.landmark[index]
+            if landmark.visibility >= MIN_VISIBILITY:
+                pose[3 * keypoint : 3 * keypoint + 3] = pixel(landmark) + [round(landmark.visibility, 3)]
+
+    def hand(landmarks):
+        if landmarks is None:
+            return [0.0] * (3 * HAND_LANDMARKS)
+        return [v for landmark in landmarks.landmark for v in pixel(landmark) + [1.0]]
+
+    return {
+        "pose_keypoints_2d": pose,
+        "hand_left_keypoints_2d": hand(results.left_hand_landmarks),
+        "hand_right_keypoints_2d": hand(results.right_hand_landmarks),
+    }
+
+
+def write_openpose(folder, camera, frame, person):
+    path = folder / camera / f"{camera}_{frame:012d}_keypoints.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    people = [person] if any(person["pose_keypoints_2d"]) else []
+    path.write_text(json.dumps({"version": 1.3, "people": people}))
 
 
 def triangulate(cameras, projections, views):
@@ -270,7 +316,7 @@ def reprojection_px(cameras, point, views):
 # --- The run ---------------------------------------------------------------------------------
 
 
-def run(recording, frames, out):
+def run(recording, frames, out, openpose=None):
     calibration = find_calibration(recording)
     cameras = read_calibration(calibration)
     match_videos(recording, cameras)
@@ -286,9 +332,13 @@ def run(recording, frames, out):
     # thread. Each camera's capture and tracker are only ever used by one task at a time.
     with ThreadPoolExecutor(len(cameras)) as pool:
         while frames is None or frame_sets < frames:
-            seen = list(pool.map(observe, captures, trackers))
+            people = [{} if openpose is not None else None for _ in cameras]
+            seen = list(pool.map(observe, captures, trackers, people))
             if any(s is None for s in seen):
                 break
+            if openpose is not None:
+                for camera, person in zip(cameras, people):
+                    write_openpose(openpose, camera.name, frame_sets, person)
             record = {"frame": frame_sets, "objects": {}}
             for name in OBJECTS:
                 views = {i: s[name] for i, s in enumerate(seen) if name in s}
@@ -330,6 +380,7 @@ def main():
     parser.add_argument("--frames", type=int, help="read at most N frame sets")
     parser.add_argument("--json", action="store_true", help="print the report as one JSON object")
     parser.add_argument("--out", type=Path, help="write the triangulated points as JSON Lines")
+    parser.add_argument("--openpose", type=Path, help="write each view's landmarks as OpenPose JSON into this folder")
     args = parser.parse_args()
     if args.frames is not None and args.frames < 1:
         parser.error("--frames must be at least 1")
@@ -337,10 +388,10 @@ def main():
         sys.exit(f"mediapipe_baseline: recording folder {args.recording} not found")
     try:
         if args.out is None:
-            report = run(args.recording, args.frames, None)
+            report = run(args.recording, args.frames, None, args.openpose)
         else:
             with open(args.out, "w") as out:
-                report = run(args.recording, args.frames, out)
+                report = run(args.recording, args.frames, out, args.openpose)
     except BaselineError as error:
         sys.exit(f"mediapipe_baseline: {error}")
     if args.json:

@@ -338,9 +338,14 @@ struct EvalTracksArgs {
     /// or a folder of OpenPose JSON keypoints with one subfolder per camera.
     #[arg(long)]
     reference: Option<PathBuf>,
-    /// OpenPose keypoint order (25 keypoints are BODY_25 unless told; 18 are COCO).
+    /// OpenPose keypoint order (25 keypoints are BODY_25 unless told; 17, 18, 26 and 133 are
+    /// COCO_17, COCO, HALPE_26 and COCO_133).
     #[arg(long, value_enum, requires = "reference")]
     keypoints: Option<crate::eval::openpose::KeypointOrder>,
+    /// With an OpenPose --reference: score against its nose and wrists instead of the ear
+    /// midpoint and the palm centres (the points handflow publishes).
+    #[arg(long, requires = "reference")]
+    nose_and_wrists: bool,
     /// Calibration file to use instead of the recording's own.
     #[arg(long)]
     calibration: Option<PathBuf>,
@@ -1545,11 +1550,13 @@ fn eval_tracks_against_reference(
 ) -> Result<()> {
     use crate::eval::tracks_reference::evaluate_against_reference;
     let reference = if path.is_dir() {
-        crate::eval::openpose::read_openpose(path, rig, args.keypoints)?
+        use crate::eval::openpose::OpenPosePoints;
+        let points = if args.nose_and_wrists { OpenPosePoints::NoseAndWrists } else { OpenPosePoints::Centres };
+        crate::eval::openpose::read_openpose(path, rig, args.keypoints, points)?
     } else {
         anyhow::ensure!(
-            args.keypoints.is_none(),
-            "--keypoints applies to an OpenPose folder, not to `{}`",
+            args.keypoints.is_none() && !args.nose_and_wrists,
+            "--keypoints and --nose-and-wrists apply to an OpenPose folder, not to `{}`",
             path.display()
         );
         crate::eval::reference::read_handflow_reference(path, rig)?

@@ -546,6 +546,21 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
         ]),
         &["--reference"],
     );
+    // OpenPose's choice of points applies to an OpenPose folder only.
+    check_failure(
+        &handflow(&[
+            "eval",
+            "tracks",
+            "--recording",
+            arg(&rec),
+            "--tracks",
+            arg(&tracks),
+            "--reference",
+            arg(&reference),
+            "--nose-and-wrists",
+        ]),
+        &["--nose-and-wrists", "OpenPose folder", "reference.json"],
+    );
 
     let overlays = tmp.path().join("overlay");
     let r = handflow(&["overlay", "--recording", arg(&rec), "--tracks", arg(&tracks), "--out", arg(&overlays)]);

@@ -17,7 +17,7 @@ use std::panic::AssertUnwindSafe;
 use std::path::{Path, PathBuf};
 
 use handflow::commands::launcher::Pipeline;
-use handflow::eval::openpose::read_openpose;
+use handflow::eval::openpose::{read_openpose, OpenPosePoints};
 use handflow::eval::reference::read_handflow_reference;
 use handflow_ingest::recording::{read_caliscope_timestamps, read_frame_table};
 use handflow_ingest::synthetic::SceneSpec;
@@ -266,7 +266,7 @@ fn targets() -> Vec<Target> {
                         }
                     }
                     std::fs::write(root.join("cam_1/cam_1_000000_keypoints.json"), input).unwrap();
-                    read_openpose(&root, &rig, None).map(|_| ()).map_err(|e| format!("{e:#}"))
+                    read_openpose(&root, &rig, None, OpenPosePoints::Centres).map(|_| ()).map_err(|e| format!("{e:#}"))
                 }
             }),
         },

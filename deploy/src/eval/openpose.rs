@@ -17,9 +17,14 @@
 //!   is an error.
 //! - **Keypoints**: `pose_keypoints_2d` is `[x, y, c, ...]`; BODY_25 and BODY_25B both
 //!   have 25 keypoints (in different orders) so the order is given ([`KeypointOrder`]),
-//!   COCO has 18. The head is the nose, the hands the wrists, the person's own sides
-//!   (OpenPose's `LWrist` is the person's left, as handflow's `left_hand`). A keypoint with
-//!   confidence 0 is missing.
+//!   COCO has 18; Pose2Sim's RTMPose models write COCO_17 (17), HALPE_26 (26) and COCO_133
+//!   (133, both hands included) the same way. A keypoint with confidence 0 is missing.
+//! - **Head and hands** ([`OpenPosePoints`]): by default the points handflow publishes, as the
+//!   `handflow-reference/1` files define them: the head is the ear midpoint (the nose where an
+//!   ear is not visible), a hand its palm centre (the mean of hand keypoints 0, 5, 9, 13, 17
+//!   from `hand_left_keypoints_2d` / `hand_right_keypoints_2d`, or COCO_133's hands) where
+//!   the files hold hand keypoints, else its wrist; or the nose and the wrists. The person's
+//!   own sides (OpenPose's `LWrist` is the person's left, as handflow's `left_hand`).
 //! - **The person**: the one with the highest summed confidence over all keypoints in
 //!   that view and frame (the first on a tie): the subject in front of a rig is the most
 //!   completely detected; a passer-by or a poster is partial. Frames with empty `people` are
@@ -50,13 +55,33 @@ const KEYPOINTS_SUFFIX: &str = "_keypoints.json";
 /// The keypoint order of `pose_keypoints_2d`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum KeypointOrder {
-    /// OpenPose's default BODY_25: nose 0, right wrist 4, left wrist 7.
+    /// OpenPose's default BODY_25: nose 0, right wrist 4, left wrist 7, right ear 17, left
+    /// ear 18.
     Body25,
-    /// OpenPose's experimental BODY_25B (COCO order first): nose 0, left wrist 9, right
-    /// wrist 10.
+    /// OpenPose's experimental BODY_25B (COCO order first): nose 0, left ear 3, right ear 4,
+    /// left wrist 9, right wrist 10.
     Body25b,
-    /// COCO, 18 keypoints: nose 0, right wrist 4, left wrist 7.
+    /// OpenPose's COCO, 18 keypoints: nose 0, right wrist 4, left wrist 7, right ear 16, left
+    /// ear 17.
     Coco,
+    /// COCO's own 17 keypoints (RTMPose and other top-down models as Pose2Sim writes them):
+    /// nose 0, left ear 3, right ear 4, left wrist 9, right wrist 10.
+    Coco17,
+    /// HALPE_26 (Pose2Sim's default body model, RTMPose or AlphaPose): COCO's 17 first, then
+    /// head, neck, hip and feet.
+    Halpe26,
+    /// COCO-WholeBody's 133 (Pose2Sim's whole-body model): COCO's 17, feet, 68 face points,
+    /// then each hand's 21 (left from 91, right from 112).
+    Coco133,
+}
+
+/// Where a model keeps the keypoints the reference is made of.
+struct BodyKeypoints {
+    nose: usize,
+    /// Left, right.
+    ears: [usize; 2],
+    /// Left, right.
+    wrists: [usize; 2],
 }
 
 impl KeypointOrder {
@@ -65,35 +90,78 @@ impl KeypointOrder {
         match self {
             KeypointOrder::Body25 | KeypointOrder::Body25b => 25,
             KeypointOrder::Coco => 18,
+            KeypointOrder::Coco17 => 17,
+            KeypointOrder::Halpe26 => 26,
+            KeypointOrder::Coco133 => 133,
         }
     }
 
-    /// Indices of the nose, the left wrist and the right wrist: head, left hand, right hand.
-    pub fn object_keypoints(self) -> [usize; 3] {
+    fn body_keypoints(self) -> BodyKeypoints {
         match self {
-            KeypointOrder::Body25 | KeypointOrder::Coco => [0, 7, 4],
-            KeypointOrder::Body25b => [0, 9, 10],
+            KeypointOrder::Body25 => BodyKeypoints { nose: 0, ears: [18, 17], wrists: [7, 4] },
+            KeypointOrder::Coco => BodyKeypoints { nose: 0, ears: [17, 16], wrists: [7, 4] },
+            KeypointOrder::Body25b | KeypointOrder::Coco17 | KeypointOrder::Halpe26 | KeypointOrder::Coco133 => {
+                BodyKeypoints { nose: 0, ears: [3, 4], wrists: [9, 10] }
+            }
         }
     }
 
-    /// The OpenPose model name (`BODY_25`, `BODY_25B`, `COCO`).
+    /// The first of each hand's 21 keypoints (left, right) when `pose_keypoints_2d` holds
+    /// them.
+    fn hands_in_pose(self) -> Option<[usize; 2]> {
+        (self == KeypointOrder::Coco133).then_some([91, 112])
+    }
+
+    /// The model's name (`BODY_25`, `BODY_25B`, `COCO`, `COCO_17`, `HALPE_26`, `COCO_133`).
     pub fn model_name(self) -> &'static str {
         match self {
             KeypointOrder::Body25 => "BODY_25",
             KeypointOrder::Body25b => "BODY_25B",
             KeypointOrder::Coco => "COCO",
+            KeypointOrder::Coco17 => "COCO_17",
+            KeypointOrder::Halpe26 => "HALPE_26",
+            KeypointOrder::Coco133 => "COCO_133",
         }
     }
 
-    /// The order of `count` keypoints when none was given: 18 is COCO, 25 BODY_25.
+    /// The order of `count` keypoints when none was given: 25 is BODY_25 (BODY_25B has to
+    /// be named), the other counts are one model each.
     fn from_count(count: usize) -> Option<KeypointOrder> {
         match count {
+            17 => Some(KeypointOrder::Coco17),
             18 => Some(KeypointOrder::Coco),
             25 => Some(KeypointOrder::Body25),
+            26 => Some(KeypointOrder::Halpe26),
+            133 => Some(KeypointOrder::Coco133),
             _ => None,
         }
     }
 }
+
+/// Which points of an OpenPose person stand for the head and the hands.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum OpenPosePoints {
+    /// What handflow publishes: the head's centre as the ear midpoint (the nose where an ear
+    /// is not visible) and each hand's palm centre (the mean of hand keypoints 0, 5, 9, 13,
+    /// 17: the wrist and the four knuckles) where the files hold hand keypoints, else the
+    /// wrist. The `handflow-reference/1` files define head and hands the same way.
+    #[default]
+    Centres,
+    /// The nose and the wrists (EVALUATION.md's OpenPose definition): a nose lies about
+    /// 10 cm in front of the head's centre and a wrist about 4 cm behind the palm's.
+    NoseAndWrists,
+}
+
+/// Least mean confidence of a hand's five palm keypoints: OpenPose's default threshold for
+/// drawing hand keypoints (`--hand_render_threshold`); a hand hidden or out of its crop
+/// still gets keypoints, at lower confidence.
+pub const HAND_MIN_CONFIDENCE: f64 = 0.2;
+
+/// Hand keypoints of the palm centre (OpenPose's and MediaPipe's hand numbering alike).
+const PALM_KEYPOINTS: [usize; 5] = [0, 5, 9, 13, 17];
+
+/// Keypoints of one hand.
+const HAND_KEYPOINTS: usize = 21;
 
 #[derive(Deserialize)]
 struct KeypointFile {
@@ -104,12 +172,78 @@ struct KeypointFile {
 struct Person {
     #[serde(default)]
     pose_keypoints_2d: Vec<f64>,
+    #[serde(default)]
+    hand_left_keypoints_2d: Vec<f64>,
+    #[serde(default)]
+    hand_right_keypoints_2d: Vec<f64>,
+}
+
+/// What one view's main person says of head and hands.
+struct PersonPoints {
+    head: Option<Point2<f64>>,
+    /// Left, right.
+    wrists: [Option<Point2<f64>>; 2],
+    /// Left, right; `None` also where the files hold no hand keypoints.
+    palms: [Option<Point2<f64>>; 2],
+    /// Whether the person has hand keypoints at all (OpenPose run with `--hand`, or a
+    /// whole-body model), detected or not.
+    has_hand_keypoints: bool,
+}
+
+/// Keypoint `k` of `(x, y, confidence)` triples, when detected (confidence above 0).
+fn keypoint(values: &[f64], k: usize) -> Option<(Point2<f64>, f64)> {
+    let triple = values.get(3 * k..3 * k + 3)?;
+    (triple[2] > 0.0).then(|| (Point2::new(triple[0], triple[1]), triple[2]))
+}
+
+/// The palm centre of a hand's 21 keypoints (`hand`), kept as the shared session's
+/// reference keeps MediaPipe's: its five palm keypoints detected with a mean confidence of
+/// [`HAND_MIN_CONFIDENCE`] or more, and its wrist within the hand's own size (the widest
+/// distance between two of the five) of the body model's wrist of that side, so a hand
+/// found on the wrong arm or on a background is left out.
+fn palm_centre(hand: &[f64], body_wrist: Option<Point2<f64>>) -> Option<Point2<f64>> {
+    let points: Vec<(Point2<f64>, f64)> = PALM_KEYPOINTS.iter().map(|&k| keypoint(hand, k)).collect::<Option<_>>()?;
+    let confidence = points.iter().map(|(_, c)| c).sum::<f64>() / points.len() as f64;
+    if confidence < HAND_MIN_CONFIDENCE {
+        return None;
+    }
+    let size = points.iter().flat_map(|(a, _)| points.iter().map(move |(b, _)| (a - b).norm())).fold(0.0, f64::max);
+    if (points[0].0 - body_wrist?).norm() > size {
+        return None;
+    }
+    let sum = points.iter().fold(nalgebra::Vector2::zeros(), |acc, (p, _)| acc + p.coords);
+    Some(Point2::from(sum / points.len() as f64))
+}
+
+impl PersonPoints {
+    fn of(person: &Person, order: KeypointOrder, points: OpenPosePoints) -> PersonPoints {
+        let body = order.body_keypoints();
+        let pose = &person.pose_keypoints_2d;
+        let at = |k: usize| keypoint(pose, k).map(|(p, _)| p);
+        let nose = at(body.nose);
+        let head = match (points, at(body.ears[0]), at(body.ears[1])) {
+            (OpenPosePoints::Centres, Some(left), Some(right)) => Some(nalgebra::center(&left, &right)),
+            _ => nose,
+        };
+        let wrists = body.wrists.map(at);
+        let hands: [&[f64]; 2] = match order.hands_in_pose() {
+            Some(first) => first.map(|f| pose.get(3 * f..3 * (f + HAND_KEYPOINTS)).unwrap_or(&[])),
+            None => [&person.hand_left_keypoints_2d, &person.hand_right_keypoints_2d],
+        };
+        let has_hand_keypoints = hands.iter().any(|h| h.len() == 3 * HAND_KEYPOINTS);
+        let palms = [0, 1].map(|side| match points {
+            OpenPosePoints::Centres => palm_centre(hands[side], wrists[side]),
+            OpenPosePoints::NoseAndWrists => None,
+        });
+        PersonPoints { head, wrists, palms, has_hand_keypoints }
+    }
 }
 
 /// Reads an OpenPose folder (see the [module documentation](self)) as a reference for
 /// `rig`'s cameras. `order` is the keypoint order; `None` takes it from the keypoint count
-/// (18 COCO, 25 BODY_25); a count that does not fit the order is an error.
-pub fn read_openpose(dir: &Path, rig: &Rig, order: Option<KeypointOrder>) -> Result<Reference> {
+/// (17 COCO_17, 18 COCO, 25 BODY_25, 26 HALPE_26, 133 COCO_133); a count that does not fit
+/// the order is an error. `points` says which points stand for head and hands.
+pub fn read_openpose(dir: &Path, rig: &Rig, order: Option<KeypointOrder>, points: OpenPosePoints) -> Result<Reference> {
     let at = dir.display();
     let mut folders: Vec<(String, PathBuf)> = Vec::new();
     let mut loose_keypoint_files = 0;
@@ -147,8 +281,11 @@ pub fn read_openpose(dir: &Path, rig: &Rig, order: Option<KeypointOrder>) -> Res
 
     let mut order = order;
     let mut frames: BTreeMap<u64, ReferenceFrame> = BTreeMap::new();
-    // Per frame, per object: pixel per camera.
-    let mut pixels: BTreeMap<u64, [Vec<Option<Point2<f64>>>; 3]> = BTreeMap::new();
+    // Per frame: the head's, the wrists' and the palms' pixel per camera (wrists and palms
+    // left, right); which of the two stand for the hands is decided once every file is read.
+    type Views = Vec<Option<Point2<f64>>>;
+    let mut pixels: BTreeMap<u64, [Views; 5]> = BTreeMap::new();
+    let mut hand_keypoints = false;
     for (c, camera_files) in files.iter().enumerate() {
         for (number, path) in camera_files {
             let frame = number - first;
@@ -158,29 +295,40 @@ pub fn read_openpose(dir: &Path, rig: &Rig, order: Option<KeypointOrder>) -> Res
                 continue;
             };
             let Some(order) = order else { continue };
+            let found = PersonPoints::of(person, order, points);
+            hand_keypoints |= found.has_hand_keypoints;
             let slots = pixels.entry(frame).or_insert_with(|| std::array::from_fn(|_| vec![None; rig.cameras.len()]));
-            for (k, &keypoint) in order.object_keypoints().iter().enumerate() {
-                let (x, y, confidence) = (person[3 * keypoint], person[3 * keypoint + 1], person[3 * keypoint + 2]);
-                if confidence > 0.0 {
-                    slots[k][c] = Some(Point2::new(x, y));
-                }
+            let views = [found.head, found.wrists[0], found.wrists[1], found.palms[0], found.palms[1]];
+            for (slot, pixel) in slots.iter_mut().zip(views) {
+                slot[c] = pixel;
             }
         }
     }
-    for (frame, objects) in pixels {
+    let palms = hand_keypoints && points == OpenPosePoints::Centres;
+    for (frame, [head, left_wrist, right_wrist, left_palm, right_palm]) in pixels {
         let entry = frames.entry(frame).or_default();
-        for (k, views) in objects.into_iter().enumerate() {
+        let hands = if palms { [left_palm, right_palm] } else { [left_wrist, right_wrist] };
+        for (k, views) in std::iter::once(head).chain(hands).enumerate() {
             if views.iter().any(Option::is_some) {
                 entry[k] = Some(ReferenceObject::new(rig, views, None));
             }
         }
     }
     let model = order.map_or("unknown keypoints (no person detected)", KeypointOrder::model_name);
+    let (head, hands) = match (points, palms) {
+        (OpenPosePoints::NoseAndWrists, _) => ("nose", "wrist"),
+        (OpenPosePoints::Centres, true) => {
+            ("ear midpoint (nose where an ear is not visible)", "palm centre (hand keypoints 0, 5, 9, 13, 17)")
+        }
+        (OpenPosePoints::Centres, false) => {
+            ("ear midpoint (nose where an ear is not visible)", "wrist (the files hold no hand keypoints)")
+        }
+    };
     Ok(Reference {
         definition: ReferenceDefinition {
             format: format!("openpose {model}"),
-            head: "nose".to_owned(),
-            hands: "wrist".to_owned(),
+            head: head.to_owned(),
+            hands: hands.to_owned(),
         },
         palm_width_m: PALM_WIDTH_M,
         frames,
@@ -224,8 +372,8 @@ fn read_keypoint_file(path: &Path) -> Result<Vec<Person>> {
 
 /// The keypoints of the person with the highest summed confidence, after checking every
 /// person's keypoints against `order` (set from the count when `None`).
-fn main_person<'a>(path: &Path, people: &'a [Person], order: &mut Option<KeypointOrder>) -> Result<Option<&'a [f64]>> {
-    let mut best: Option<(f64, &[f64])> = None;
+fn main_person<'a>(path: &Path, people: &'a [Person], order: &mut Option<KeypointOrder>) -> Result<Option<&'a Person>> {
+    let mut best: Option<(f64, &Person)> = None;
     for (p, person) in people.iter().enumerate() {
         let values = &person.pose_keypoints_2d;
         let at = || format!("`{}` person {p} pose_keypoints_2d", path.display());
@@ -235,7 +383,11 @@ fn main_person<'a>(path: &Path, people: &'a [Person], order: &mut Option<Keypoin
             Some(o) => o,
             None => {
                 let Some(o) = KeypointOrder::from_count(count) else {
-                    bail!("{}: {count} keypoints; BODY_25, BODY_25B (25) and COCO (18) are read", at())
+                    bail!(
+                        "{}: {count} keypoints; BODY_25 and BODY_25B (25), COCO (18), COCO_17 (17), HALPE_26 (26) and \
+                         COCO_133 (133) are read",
+                        at()
+                    )
                 };
                 *order = Some(o);
                 o
@@ -249,23 +401,41 @@ fn main_person<'a>(path: &Path, people: &'a [Person], order: &mut Option<Keypoin
             expected.keypoint_count()
         );
         ensure!(values.iter().all(|v| v.is_finite()), "{}: a number is not finite", at());
+        for (name, hand) in [
+            ("hand_left_keypoints_2d", &person.hand_left_keypoints_2d),
+            ("hand_right_keypoints_2d", &person.hand_right_keypoints_2d),
+        ] {
+            ensure!(
+                hand.is_empty() || hand.len() == 3 * HAND_KEYPOINTS,
+                "`{}` person {p} {name}: {} numbers, expected none or {} ({HAND_KEYPOINTS} keypoints)",
+                path.display(),
+                hand.len(),
+                3 * HAND_KEYPOINTS
+            );
+            ensure!(
+                hand.iter().all(|v| v.is_finite()),
+                "`{}` person {p} {name}: a number is not finite",
+                path.display()
+            );
+        }
         let total: f64 = values.iter().skip(2).step_by(3).sum();
         if best.as_ref().is_none_or(|(b, _)| total > *b) {
-            best = Some((total, values.as_slice()));
+            best = Some((total, person));
         }
     }
-    Ok(best.map(|(_, values)| values))
+    Ok(best.map(|(_, person)| person))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::eval::reference::tests::{fixtures, rig3};
+    use nalgebra::{Point3, Vector3};
 
     #[test]
     fn reads_the_fixture_choosing_the_main_person_and_skipping_missing_keypoints() {
         let rig = rig3();
-        let r = read_openpose(&fixtures().join("openpose/body25"), &rig, None).unwrap();
+        let r = read_openpose(&fixtures().join("openpose/body25"), &rig, None, OpenPosePoints::NoseAndWrists).unwrap();
         assert_eq!(r.definition.format, "openpose BODY_25");
         assert_eq!((r.definition.head.as_str(), r.definition.hands.as_str()), ("nose", "wrist"));
         // Files numbered from 1 give frames 0, 1, 2.
@@ -290,20 +460,33 @@ mod tests {
     #[test]
     fn body25b_and_coco_take_their_own_wrists() {
         let rig = rig3();
-        let r = read_openpose(&fixtures().join("openpose/body25b"), &rig, Some(KeypointOrder::Body25b)).unwrap();
+        let r = read_openpose(
+            &fixtures().join("openpose/body25b"),
+            &rig,
+            Some(KeypointOrder::Body25b),
+            OpenPosePoints::NoseAndWrists,
+        )
+        .unwrap();
         assert_eq!(r.definition.format, "openpose BODY_25B");
         let frame = &r.frames[&0];
         assert_eq!(frame[1].as_ref().unwrap().pixels[0], Some(Point2::new(709.0, 409.0)));
         assert_eq!(frame[2].as_ref().unwrap().pixels[0], Some(Point2::new(510.0, 410.0)));
         // The same files read as BODY_25 take other keypoints; as COCO they are refused.
-        let as_body25 = read_openpose(&fixtures().join("openpose/body25b"), &rig, None).unwrap();
+        let as_body25 =
+            read_openpose(&fixtures().join("openpose/body25b"), &rig, None, OpenPosePoints::NoseAndWrists).unwrap();
         assert_ne!(as_body25.frames[&0][1], r.frames[&0][1]);
         let err = format!(
             "{:#}",
-            read_openpose(&fixtures().join("openpose/body25b"), &rig, Some(KeypointOrder::Coco)).unwrap_err()
+            read_openpose(
+                &fixtures().join("openpose/body25b"),
+                &rig,
+                Some(KeypointOrder::Coco),
+                OpenPosePoints::Centres
+            )
+            .unwrap_err()
         );
         assert!(err.contains("25 keypoints, but COCO has 18"), "{err}");
-        let coco = read_openpose(&fixtures().join("openpose/coco"), &rig, None).unwrap();
+        let coco = read_openpose(&fixtures().join("openpose/coco"), &rig, None, OpenPosePoints::NoseAndWrists).unwrap();
         assert_eq!(coco.definition.format, "openpose COCO");
         assert_eq!(coco.frames[&0][1].as_ref().unwrap().pixels[0], Some(Point2::new(707.0, 407.0)));
         assert_eq!(coco.frames[&0][2].as_ref().unwrap().pixels[0], Some(Point2::new(504.0, 404.0)));
@@ -322,9 +505,183 @@ mod tests {
         ];
         for (folder, expected) in cases {
             let dir = fixtures().join("openpose").join(folder);
-            let err = format!("{:#}", read_openpose(&dir, &rig, None).unwrap_err());
+            let err = format!("{:#}", read_openpose(&dir, &rig, None, OpenPosePoints::Centres).unwrap_err());
             assert!(err.contains(folder), "{folder}: {err}");
             assert!(err.contains(expected), "{folder}: expected `{expected}` in {err}");
         }
+    }
+
+    /// A person at the origin of [`rig3`]: 3D points of the nose, the ears, the wrists and each
+    /// hand's palm keypoints (wrist and four knuckles), metres.
+    struct Subject {
+        nose: Point3<f64>,
+        /// Left, right.
+        ears: [Point3<f64>; 2],
+        /// Left, right: the hand's wrist, then its index, middle, ring and little knuckles.
+        hands: [[Point3<f64>; 5]; 2],
+    }
+
+    fn subject() -> Subject {
+        let hand = |x: f64, side: f64| {
+            [
+                Point3::new(x, -0.3, 0.05),
+                Point3::new(x + side * 0.03, -0.21, 0.06),
+                Point3::new(x + side * 0.01, -0.205, 0.06),
+                Point3::new(x - side * 0.01, -0.21, 0.06),
+                Point3::new(x - side * 0.03, -0.22, 0.055),
+            ]
+        };
+        Subject {
+            nose: Point3::new(0.0, 0.3, 0.1),
+            // The person faces the cameras (+z): their left is the world's +x.
+            ears: [Point3::new(0.075, 0.31, 0.0), Point3::new(-0.075, 0.31, 0.0)],
+            hands: [hand(0.25, 1.0), hand(-0.25, -1.0)],
+        }
+    }
+
+    /// `(x, y, confidence)` numbers of `count` keypoints, every one missing but those given.
+    fn keypoint_values(count: usize, given: &[(usize, Point2<f64>, f64)]) -> Vec<f64> {
+        let mut values = vec![0.0; 3 * count];
+        for &(k, p, c) in given {
+            values[3 * k..3 * k + 3].copy_from_slice(&[p.x, p.y, c]);
+        }
+        values
+    }
+
+    /// Writes one frame of `people` (JSON objects) for camera `camera` into `dir`.
+    fn write_frame(dir: &Path, camera: &str, frame: u64, people: Vec<serde_json::Value>) {
+        let folder = dir.join(format!("{camera}_json"));
+        std::fs::create_dir_all(&folder).unwrap();
+        let file = folder.join(format!("{camera}_{frame:012}_keypoints.json"));
+        std::fs::write(file, serde_json::json!({ "version": 1.3, "people": people }).to_string()).unwrap();
+    }
+
+    #[test]
+    fn the_head_is_the_ear_midpoint_and_a_hand_its_palm_centre_where_the_files_have_hands() {
+        let rig = rig3();
+        let s = subject();
+        let dir = tempfile::tempdir().unwrap();
+        for (c, camera) in rig.cameras.iter().enumerate() {
+            let px = |p: &Point3<f64>| camera.project(p).unwrap();
+            // BODY_25: nose 0, right wrist 4, left wrist 7, right ear 17, left ear 18.
+            let mut body = vec![(0, px(&s.nose), 0.9), (4, px(&s.hands[1][0]), 0.8), (7, px(&s.hands[0][0]), 0.8)];
+            // cam_2 sees only the left ear (a profile): its head is the nose.
+            body.push((18, px(&s.ears[0]), 0.7));
+            if c != 2 {
+                body.push((17, px(&s.ears[1]), 0.7));
+            }
+            let hand = |side: usize, confidence: f64| {
+                let given: Vec<_> =
+                    PALM_KEYPOINTS.iter().zip(&s.hands[side]).map(|(&k, p)| (k, px(p), confidence)).collect();
+                keypoint_values(HAND_KEYPOINTS, &given)
+            };
+            // cam_1's right hand is barely detected (a hand out of its crop): left out there.
+            let right = hand(1, if c == 1 { 0.1 } else { 0.6 });
+            // A passer-by with fewer keypoints is never the main person.
+            let passer_by = keypoint_values(25, &[(0, Point2::new(5.0, 5.0), 0.3)]);
+            let people = vec![
+                serde_json::json!({ "pose_keypoints_2d": passer_by, "hand_left_keypoints_2d": [], "hand_right_keypoints_2d": [] }),
+                serde_json::json!({
+                    "pose_keypoints_2d": keypoint_values(25, &body),
+                    "hand_left_keypoints_2d": hand(0, 0.6),
+                    "hand_right_keypoints_2d": right,
+                }),
+            ];
+            write_frame(dir.path(), &format!("cam{:02}", c + 1), 0, people);
+        }
+        let r = read_openpose(dir.path(), &rig, None, OpenPosePoints::Centres).unwrap();
+        assert_eq!(r.definition.head, "ear midpoint (nose where an ear is not visible)");
+        assert_eq!(r.definition.hands, "palm centre (hand keypoints 0, 5, 9, 13, 17)");
+        let frame = &r.frames[&0];
+        let head = frame[0].as_ref().unwrap();
+        let ears_px = |c: usize| {
+            let cam = &rig.cameras[c];
+            nalgebra::center(&cam.project(&s.ears[0]).unwrap(), &cam.project(&s.ears[1]).unwrap())
+        };
+        assert_eq!(head.pixels[0], Some(ears_px(0)));
+        assert_eq!(head.pixels[2], rig.cameras[2].project(&s.nose));
+        for (side, object) in frame[1..].iter().enumerate() {
+            let object = object.as_ref().unwrap();
+            let centre = Point3::from(s.hands[side].iter().fold(Vector3::zeros(), |a, p| a + p.coords) / 5.0);
+            let error = (object.point.unwrap() - centre).norm();
+            assert!(error < 2e-3, "hand {side} triangulated {error} m from its palm centre");
+            // The wrist is 8 cm or more from the palm centre: what the old definition scored.
+            assert!((s.hands[side][0] - centre).norm() > 0.07);
+        }
+        assert_eq!(frame[2].as_ref().unwrap().pixels[1], None, "a hand under the confidence bound is left out");
+        // The same files scored by the nose and the wrists.
+        let old = read_openpose(dir.path(), &rig, None, OpenPosePoints::NoseAndWrists).unwrap();
+        assert_eq!((old.definition.head.as_str(), old.definition.hands.as_str()), ("nose", "wrist"));
+        let wrist = old.frames[&0][1].as_ref().unwrap().point.unwrap();
+        assert!((wrist - s.hands[0][0]).norm() < 2e-3);
+        assert!((old.frames[&0][0].as_ref().unwrap().point.unwrap() - s.nose).norm() < 2e-3);
+    }
+
+    #[test]
+    fn whole_body_models_carry_their_hands_and_body_models_fall_back_to_wrists() {
+        let rig = rig3();
+        let s = subject();
+        let (whole, body) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        for (c, camera) in rig.cameras.iter().enumerate() {
+            let px = |p: &Point3<f64>| camera.project(p).unwrap();
+            // COCO order: nose 0, left ear 3, right ear 4, left wrist 9, right wrist 10.
+            let mut given = vec![
+                (0, px(&s.nose), 0.9),
+                (3, px(&s.ears[0]), 0.8),
+                (4, px(&s.ears[1]), 0.8),
+                (9, px(&s.hands[0][0]), 0.8),
+                (10, px(&s.hands[1][0]), 0.8),
+            ];
+            let name = format!("cam{:02}", c + 1);
+            // HALPE_26: no hands.
+            write_frame(
+                body.path(),
+                &name,
+                0,
+                vec![serde_json::json!({ "pose_keypoints_2d": keypoint_values(26, &given) })],
+            );
+            // COCO_133: the left hand from 91, the right from 112. The right hand's keypoints
+            // in cam_0 lie on the left arm (a hand found on the wrong arm): left out there.
+            for (side, first) in [(0, 91), (1, 112)] {
+                let points = if side == 1 && c == 0 { &s.hands[0] } else { &s.hands[side] };
+                given.extend(PALM_KEYPOINTS.iter().zip(points).map(|(&k, p)| (first + k, px(p), 0.7)));
+            }
+            write_frame(
+                whole.path(),
+                &name,
+                0,
+                vec![serde_json::json!({ "pose_keypoints_2d": keypoint_values(133, &given) })],
+            );
+        }
+        let r = read_openpose(whole.path(), &rig, None, OpenPosePoints::Centres).unwrap();
+        assert_eq!(r.definition.format, "openpose COCO_133");
+        assert_eq!(r.definition.hands, "palm centre (hand keypoints 0, 5, 9, 13, 17)");
+        let frame = &r.frames[&0];
+        let ears = nalgebra::center(&s.ears[0], &s.ears[1]);
+        assert!((frame[0].as_ref().unwrap().point.unwrap() - ears).norm() < 2e-3);
+        let right = frame[2].as_ref().unwrap();
+        assert_eq!(right.pixels[0], None, "a hand whose wrist is not the body's wrist of its side");
+        let centre = Point3::from(s.hands[1].iter().fold(Vector3::zeros(), |a, p| a + p.coords) / 5.0);
+        assert!((right.point.unwrap() - centre).norm() < 2e-3);
+
+        let r = read_openpose(body.path(), &rig, None, OpenPosePoints::Centres).unwrap();
+        assert_eq!(r.definition.format, "openpose HALPE_26");
+        assert_eq!(r.definition.hands, "wrist (the files hold no hand keypoints)");
+        assert!((r.frames[&0][1].as_ref().unwrap().point.unwrap() - s.hands[0][0]).norm() < 2e-3);
+        assert!((r.frames[&0][0].as_ref().unwrap().point.unwrap() - ears).norm() < 2e-3);
+    }
+
+    #[test]
+    fn hand_keypoints_of_the_wrong_length_name_the_file_and_the_field() {
+        let rig = rig3();
+        let dir = tempfile::tempdir().unwrap();
+        for camera in ["cam02", "cam03"] {
+            write_frame(dir.path(), camera, 0, vec![serde_json::json!({ "pose_keypoints_2d": vec![1.0; 75] })]);
+        }
+        let person = serde_json::json!({ "pose_keypoints_2d": vec![1.0; 75], "hand_left_keypoints_2d": vec![1.0; 60] });
+        write_frame(dir.path(), "cam01", 0, vec![person]);
+        let err = format!("{:#}", read_openpose(dir.path(), &rig, None, OpenPosePoints::Centres).unwrap_err());
+        assert!(err.contains("cam01_000000000000_keypoints.json"), "{err}");
+        assert!(err.contains("hand_left_keypoints_2d: 60 numbers, expected none or 63"), "{err}");
     }
 }
