@@ -4,7 +4,10 @@
 # Extra arguments go to `handflow track` (for example `--set field=value` for an ablation).
 # SEEDS="0 1 2" tracks once per engine seed and adds the mean row per object: on a session of
 # about a hundred frames one seed's shares move by up to ten points, so compare means.
-# Usage: [SEEDS="0 1 2"] scripts/real_session.sh [RECORDING_DIR] [TRACK_ARGS...]
+# The reference is REFERENCE when set (a `handflow-reference/1` file or an OpenPose folder), else
+# the recording's `reference.json`, else its OpenPose folder (`pose/`, as Pose2Sim lays one out,
+# or `openpose/`).
+# Usage: [SEEDS="0 1 2"] [REFERENCE=PATH] scripts/real_session.sh [RECORDING_DIR] [TRACK_ARGS...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 rec=${1:-../shared/data/real/caliscope-hands}
@@ -12,6 +15,19 @@ shift || true
 if [ ! -d "$rec" ]; then
     echo "skipped: recording $rec not found" >&2
     exit 0
+fi
+reference=${REFERENCE:-}
+if [ -z "$reference" ]; then
+    for candidate in "$rec/reference.json" "$rec/pose" "$rec/openpose"; do
+        if [ -e "$candidate" ]; then
+            reference=$candidate
+            break
+        fi
+    done
+fi
+if [ -z "$reference" ]; then
+    echo "real_session: $rec has no reference.json, pose/ or openpose/ folder; set REFERENCE=PATH" >&2
+    exit 2
 fi
 bin=${HANDFLOW_BIN:-target/release/handflow}
 [ -x "$bin" ] || cargo build --release -q -p handflow
@@ -22,7 +38,7 @@ for seed in $seeds; do
     start=$(date +%s.%N)
     "$bin" track --recording "$rec" --out "$out/tracks-$seed.jsonl" --seed "$seed" "$@" 2>"$out/track-$seed.log"
     end=$(date +%s.%N)
-    "$bin" eval tracks --recording "$rec" --tracks "$out/tracks-$seed.jsonl" --reference "$rec/reference.json" \
+    "$bin" eval tracks --recording "$rec" --tracks "$out/tracks-$seed.jsonl" --reference "$reference" \
         --json >"$out/eval-$seed.json"
     frames=$(grep -c . "$out/tracks-$seed.jsonl")
     echo "$seed $frames $start $end" >>"$out/runs.txt"
