@@ -338,8 +338,8 @@ struct EvalTracksArgs {
     /// or a folder of OpenPose JSON keypoints with one subfolder per camera.
     #[arg(long)]
     reference: Option<PathBuf>,
-    /// OpenPose keypoint order (25 keypoints are BODY_25 unless told; 17, 18, 26 and 133 are
-    /// COCO_17, COCO, HALPE_26 and COCO_133).
+    /// OpenPose keypoint order (25 keypoints are BODY_25 unless told; 17, 18, 26, 133 and 136
+    /// are COCO_17, COCO, HALPE_26, COCO_133 and HALPE_136).
     #[arg(long, value_enum, requires = "reference")]
     keypoints: Option<crate::eval::openpose::KeypointOrder>,
     /// With an OpenPose --reference: score against its nose and wrists instead of the ear

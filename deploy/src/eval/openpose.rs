@@ -18,7 +18,8 @@
 //! - **Keypoints**: `pose_keypoints_2d` is `[x, y, c, ...]`; BODY_25 and BODY_25B both
 //!   have 25 keypoints (in different orders) so the order is given ([`KeypointOrder`]),
 //!   COCO has 18; Pose2Sim's RTMPose models write COCO_17 (17), HALPE_26 (26) and COCO_133
-//!   (133, both hands included) the same way. A keypoint with confidence 0 is missing.
+//!   (133, both hands included) the same way, AlphaPose HALPE_136 (136, both hands). A
+//!   keypoint with confidence 0 is missing.
 //! - **Head and hands** ([`OpenPosePoints`]): by default the points handflow publishes, as the
 //!   `handflow-reference/1` files define them: the head is the ear midpoint (the nose where an
 //!   ear is not visible), a hand its palm centre (the mean of hand keypoints 0, 5, 9, 13, 17
@@ -74,6 +75,9 @@ pub enum KeypointOrder {
     /// COCO-WholeBody's 133 (Pose2Sim's whole-body model): COCO's 17, feet, 68 face points,
     /// then each hand's 21 (left from 91, right from 112).
     Coco133,
+    /// HALPE_136 (AlphaPose's full body): HALPE_26, 68 face points, then each hand's 21 (left
+    /// from 94, right from 115).
+    Halpe136,
 }
 
 /// Where a model keeps the keypoints the reference is made of.
@@ -96,6 +100,7 @@ impl KeypointOrder {
             KeypointOrder::Coco17 => 17,
             KeypointOrder::Halpe26 => 26,
             KeypointOrder::Coco133 => 133,
+            KeypointOrder::Halpe136 => 136,
         }
     }
 
@@ -103,19 +108,26 @@ impl KeypointOrder {
         match self {
             KeypointOrder::Body25 => BodyKeypoints { nose: 0, ears: [18, 17], wrists: [7, 4], elbows: [6, 3] },
             KeypointOrder::Coco => BodyKeypoints { nose: 0, ears: [17, 16], wrists: [7, 4], elbows: [6, 3] },
-            KeypointOrder::Body25b | KeypointOrder::Coco17 | KeypointOrder::Halpe26 | KeypointOrder::Coco133 => {
-                BodyKeypoints { nose: 0, ears: [3, 4], wrists: [9, 10], elbows: [7, 8] }
-            }
+            KeypointOrder::Body25b
+            | KeypointOrder::Coco17
+            | KeypointOrder::Halpe26
+            | KeypointOrder::Coco133
+            | KeypointOrder::Halpe136 => BodyKeypoints { nose: 0, ears: [3, 4], wrists: [9, 10], elbows: [7, 8] },
         }
     }
 
     /// The first of each hand's 21 keypoints (left, right) when `pose_keypoints_2d` holds
     /// them.
     fn hands_in_pose(self) -> Option<[usize; 2]> {
-        (self == KeypointOrder::Coco133).then_some([91, 112])
+        match self {
+            KeypointOrder::Coco133 => Some([91, 112]),
+            KeypointOrder::Halpe136 => Some([94, 115]),
+            _ => None,
+        }
     }
 
-    /// The model's name (`BODY_25`, `BODY_25B`, `COCO`, `COCO_17`, `HALPE_26`, `COCO_133`).
+    /// The model's name (`BODY_25`, `BODY_25B`, `COCO`, `COCO_17`, `HALPE_26`, `COCO_133`,
+    /// `HALPE_136`).
     pub fn model_name(self) -> &'static str {
         match self {
             KeypointOrder::Body25 => "BODY_25",
@@ -124,6 +136,7 @@ impl KeypointOrder {
             KeypointOrder::Coco17 => "COCO_17",
             KeypointOrder::Halpe26 => "HALPE_26",
             KeypointOrder::Coco133 => "COCO_133",
+            KeypointOrder::Halpe136 => "HALPE_136",
         }
     }
 
@@ -136,6 +149,7 @@ impl KeypointOrder {
             25 => Some(KeypointOrder::Body25),
             26 => Some(KeypointOrder::Halpe26),
             133 => Some(KeypointOrder::Coco133),
+            136 => Some(KeypointOrder::Halpe136),
             _ => None,
         }
     }
@@ -259,7 +273,7 @@ impl PersonPoints {
 
 /// Reads an OpenPose folder (see the [module documentation](self)) as a reference for
 /// `rig`'s cameras. `order` is the keypoint order; `None` takes it from the keypoint count
-/// (17 COCO_17, 18 COCO, 25 BODY_25, 26 HALPE_26, 133 COCO_133); a count that does not fit
+/// (17 COCO_17, 18 COCO, 25 BODY_25, 26 HALPE_26, 133 COCO_133, 136 HALPE_136); a count that does not fit
 /// the order is an error. `points` says which points stand for head and hands.
 pub fn read_openpose(dir: &Path, rig: &Rig, order: Option<KeypointOrder>, points: OpenPosePoints) -> Result<Reference> {
     let at = dir.display();
@@ -416,7 +430,7 @@ fn main_person<'a>(path: &Path, people: &'a [Person], order: &mut Option<Keypoin
                 let Some(o) = KeypointOrder::from_count(count) else {
                     bail!(
                         "{}: {count} keypoints; BODY_25 and BODY_25B (25), COCO (18), COCO_17 (17), HALPE_26 (26) and \
-                         COCO_133 (133) are read",
+                         COCO_133 (133), HALPE_136 (136) are read",
                         at()
                     )
                 };
@@ -652,7 +666,7 @@ mod tests {
     fn whole_body_models_carry_their_hands_and_body_models_extend_the_forearm() {
         let rig = rig3();
         let s = subject();
-        let (whole, body) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        let [whole, body, halpe136] = [(); 3].map(|_| tempfile::tempdir().unwrap());
         // Left, right: forearms 25 cm long, hanging down and forwards to the wrists.
         let elbows = [0, 1].map(|side| s.hands[side][0] + Vector3::new(0.0, 0.24, -0.07));
         for (c, camera) in rig.cameras.iter().enumerate() {
@@ -687,6 +701,10 @@ mod tests {
                 0,
                 vec![serde_json::json!({ "pose_keypoints_2d": keypoint_values(133, &given) })],
             );
+            // The same person in HALPE_136: the hands from 94 and 115.
+            let halpe: Vec<_> = given.iter().map(|&(k, p, c)| (if k >= 91 { k + 3 } else { k }, p, c)).collect();
+            let people = vec![serde_json::json!({ "pose_keypoints_2d": keypoint_values(136, &halpe) })];
+            write_frame(halpe136.path(), &name, 0, people);
         }
         let r = read_openpose(whole.path(), &rig, None, OpenPosePoints::Centres).unwrap();
         assert_eq!(r.definition.format, "openpose COCO_133");
@@ -698,6 +716,10 @@ mod tests {
         assert_eq!(right.pixels[0], None, "a hand whose wrist is not the body's wrist of its side");
         let centre = Point3::from(s.hands[1].iter().fold(Vector3::zeros(), |a, p| a + p.coords) / 5.0);
         assert!((right.point.unwrap() - centre).norm() < 2e-3);
+
+        let halpe = read_openpose(halpe136.path(), &rig, None, OpenPosePoints::Centres).unwrap();
+        assert_eq!(halpe.definition.format, "openpose HALPE_136");
+        assert_eq!(halpe.frames, r.frames, "the same person read from either whole-body order");
 
         let r = read_openpose(body.path(), &rig, None, OpenPosePoints::Centres).unwrap();
         assert_eq!(r.definition.format, "openpose HALPE_26");
