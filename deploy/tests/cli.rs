@@ -533,32 +533,15 @@ fn track_writes_json_lines_that_eval_and_overlay_read() {
         }
         assert_eq!(row[4], if row[0] == "5" { "cam0" } else { "" }, "{row:?}");
     }
-    check_failure(
-        &handflow(&[
-            "eval",
-            "tracks",
-            "--recording",
-            arg(&rec),
-            "--tracks",
-            arg(&tracks),
-            "--per-frame",
-            arg(&per_frame),
-        ]),
-        &["--reference"],
-    );
+    let eval_with = |extra: &[&str]| {
+        let mut args = vec!["eval", "tracks", "--recording", arg(&rec), "--tracks", arg(&tracks)];
+        args.extend_from_slice(extra);
+        handflow(&args)
+    };
+    check_failure(&eval_with(&["--per-frame", arg(&per_frame)]), &["--reference"]);
     // OpenPose's choice of points applies to an OpenPose folder only.
     check_failure(
-        &handflow(&[
-            "eval",
-            "tracks",
-            "--recording",
-            arg(&rec),
-            "--tracks",
-            arg(&tracks),
-            "--reference",
-            arg(&reference),
-            "--nose-and-wrists",
-        ]),
+        &eval_with(&["--reference", arg(&reference), "--nose-and-wrists"]),
         &["--nose-and-wrists", "OpenPose folder", "reference.json"],
     );
 
