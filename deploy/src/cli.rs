@@ -1512,7 +1512,7 @@ fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
         }
     };
     if let Some(reference) = &args.reference {
-        return eval_tracks_against_reference(args, rec.rig(), &records, reference);
+        return eval_tracks_against_reference(args, &rec, &records, reference);
     }
     let s = evaluate_tracks(&rec, &records)?;
     if args.json {
@@ -1544,15 +1544,21 @@ fn eval_tracks(args: &EvalTracksArgs) -> Result<()> {
 /// `eval tracks --reference`: a file is a `handflow-reference/1`, a folder OpenPose keypoints.
 fn eval_tracks_against_reference(
     args: &EvalTracksArgs,
-    rig: &handflow_protocol::Rig,
+    rec: &handflow_ingest::Recording,
     records: &[handflow_publish::TrajectoryRecord],
     path: &Path,
 ) -> Result<()> {
     use crate::eval::tracks_reference::evaluate_against_reference;
+    let rig = rec.rig();
     let reference = if path.is_dir() {
-        use crate::eval::openpose::OpenPosePoints;
+        use crate::eval::openpose::{read_openpose, video_frames_of, OpenPosePoints};
         let points = if args.nose_and_wrists { OpenPosePoints::NoseAndWrists } else { OpenPosePoints::Centres };
-        crate::eval::openpose::read_openpose(path, rig, args.keypoints, points)?
+        // OpenPose numbers each video's frames: map them to frame sets as the recording does.
+        let video_frames = rec.video_positions().map(|positions| {
+            let frames: Vec<u64> = rec.frames().iter().map(|f| f.frame).collect();
+            video_frames_of(&frames, positions, rig.cameras.len())
+        });
+        read_openpose(path, rig, args.keypoints, points, video_frames.as_deref())?
     } else {
         anyhow::ensure!(
             args.keypoints.is_none() && !args.nose_and_wrists,

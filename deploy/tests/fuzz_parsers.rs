@@ -266,7 +266,9 @@ fn targets() -> Vec<Target> {
                         }
                     }
                     std::fs::write(root.join("cam_1/cam_1_000000_keypoints.json"), input).unwrap();
-                    read_openpose(&root, &rig, None, OpenPosePoints::Centres).map(|_| ()).map_err(|e| format!("{e:#}"))
+                    read_openpose(&root, &rig, None, OpenPosePoints::Centres, None)
+                        .map(|_| ())
+                        .map_err(|e| format!("{e:#}"))
                 }
             }),
         },

@@ -275,7 +275,17 @@ impl PersonPoints {
 /// `rig`'s cameras. `order` is the keypoint order; `None` takes it from the keypoint count
 /// (17 COCO_17, 18 COCO, 25 BODY_25, 26 HALPE_26, 133 COCO_133, 136 HALPE_136); a count that does not fit
 /// the order is an error. `points` says which points stand for head and hands.
-pub fn read_openpose(dir: &Path, rig: &Rig, order: Option<KeypointOrder>, points: OpenPosePoints) -> Result<Reference> {
+/// `video_frames` maps, per rig camera, a position in that camera's video to the recording's
+/// frame number ([`video_frames_of`]): OpenPose numbers a video's frames, and where a
+/// caliscope session's cameras dropped different frames, position k is not frame k in every
+/// camera; a file whose position is in no frame set is not read. `None`: file k is frame k.
+pub fn read_openpose(
+    dir: &Path,
+    rig: &Rig,
+    order: Option<KeypointOrder>,
+    points: OpenPosePoints,
+    video_frames: Option<&[BTreeMap<usize, u64>]>,
+) -> Result<Reference> {
     let at = dir.display();
     let mut folders: Vec<(String, PathBuf)> = Vec::new();
     let mut loose_keypoint_files = 0;
@@ -320,7 +330,14 @@ pub fn read_openpose(dir: &Path, rig: &Rig, order: Option<KeypointOrder>, points
     let mut hand_keypoints = false;
     for (c, camera_files) in files.iter().enumerate() {
         for (number, path) in camera_files {
-            let frame = number - first;
+            let position = number - first;
+            let frame = match video_frames {
+                Some(maps) => match usize::try_from(position).ok().and_then(|p| maps.get(c)?.get(&p)) {
+                    Some(&frame) => frame,
+                    None => continue,
+                },
+                None => position,
+            };
             let people = read_keypoint_file(path)?;
             let Some(person) = main_person(path, &people, &mut order)? else {
                 frames.entry(frame).or_default();
@@ -378,6 +395,18 @@ pub fn read_openpose(dir: &Path, rig: &Rig, order: Option<KeypointOrder>, points
         palm_width_m: PALM_WIDTH_M,
         frames,
     })
+}
+
+/// Per camera, the recording's frame number of each position in that camera's video, from
+/// the frame sets' `positions` (per set, per camera) and their frame numbers.
+pub fn video_frames_of(frames: &[u64], positions: &[Vec<usize>], cameras: usize) -> Vec<BTreeMap<usize, u64>> {
+    let mut maps = vec![BTreeMap::new(); cameras];
+    for (&frame, set) in frames.iter().zip(positions) {
+        for (map, &position) in maps.iter_mut().zip(set) {
+            map.insert(position, frame);
+        }
+    }
+    maps
 }
 
 /// The `*_keypoints.json` files of one camera folder with their numbers, sorted.
@@ -480,7 +509,8 @@ mod tests {
     #[test]
     fn reads_the_fixture_choosing_the_main_person_and_skipping_missing_keypoints() {
         let rig = rig3();
-        let r = read_openpose(&fixtures().join("openpose/body25"), &rig, None, OpenPosePoints::NoseAndWrists).unwrap();
+        let r = read_openpose(&fixtures().join("openpose/body25"), &rig, None, OpenPosePoints::NoseAndWrists, None)
+            .unwrap();
         assert_eq!(r.definition.format, "openpose BODY_25");
         assert_eq!((r.definition.head.as_str(), r.definition.hands.as_str()), ("nose", "wrist"));
         // Files numbered from 1 give frames 0, 1, 2.
@@ -510,6 +540,7 @@ mod tests {
             &rig,
             Some(KeypointOrder::Body25b),
             OpenPosePoints::NoseAndWrists,
+            None,
         )
         .unwrap();
         assert_eq!(r.definition.format, "openpose BODY_25B");
@@ -518,7 +549,8 @@ mod tests {
         assert_eq!(frame[2].as_ref().unwrap().pixels[0], Some(Point2::new(510.0, 410.0)));
         // The same files read as BODY_25 take other keypoints; as COCO they are refused.
         let as_body25 =
-            read_openpose(&fixtures().join("openpose/body25b"), &rig, None, OpenPosePoints::NoseAndWrists).unwrap();
+            read_openpose(&fixtures().join("openpose/body25b"), &rig, None, OpenPosePoints::NoseAndWrists, None)
+                .unwrap();
         assert_ne!(as_body25.frames[&0][1], r.frames[&0][1]);
         let err = format!(
             "{:#}",
@@ -526,12 +558,14 @@ mod tests {
                 &fixtures().join("openpose/body25b"),
                 &rig,
                 Some(KeypointOrder::Coco),
-                OpenPosePoints::Centres
+                OpenPosePoints::Centres,
+                None,
             )
             .unwrap_err()
         );
         assert!(err.contains("25 keypoints, but COCO has 18"), "{err}");
-        let coco = read_openpose(&fixtures().join("openpose/coco"), &rig, None, OpenPosePoints::NoseAndWrists).unwrap();
+        let coco =
+            read_openpose(&fixtures().join("openpose/coco"), &rig, None, OpenPosePoints::NoseAndWrists, None).unwrap();
         assert_eq!(coco.definition.format, "openpose COCO");
         assert_eq!(coco.frames[&0][1].as_ref().unwrap().pixels[0], Some(Point2::new(707.0, 407.0)));
         assert_eq!(coco.frames[&0][2].as_ref().unwrap().pixels[0], Some(Point2::new(504.0, 404.0)));
@@ -550,7 +584,7 @@ mod tests {
         ];
         for (folder, expected) in cases {
             let dir = fixtures().join("openpose").join(folder);
-            let err = format!("{:#}", read_openpose(&dir, &rig, None, OpenPosePoints::Centres).unwrap_err());
+            let err = format!("{:#}", read_openpose(&dir, &rig, None, OpenPosePoints::Centres, None).unwrap_err());
             assert!(err.contains(folder), "{folder}: {err}");
             assert!(err.contains(expected), "{folder}: expected `{expected}` in {err}");
         }
@@ -634,7 +668,7 @@ mod tests {
             ];
             write_frame(dir.path(), &format!("cam{:02}", c + 1), 0, people);
         }
-        let r = read_openpose(dir.path(), &rig, None, OpenPosePoints::Centres).unwrap();
+        let r = read_openpose(dir.path(), &rig, None, OpenPosePoints::Centres, None).unwrap();
         assert_eq!(r.definition.head, "ear midpoint (nose where an ear is not visible)");
         assert_eq!(r.definition.hands, "palm centre (hand keypoints 0, 5, 9, 13, 17)");
         let frame = &r.frames[&0];
@@ -655,7 +689,7 @@ mod tests {
         }
         assert_eq!(frame[2].as_ref().unwrap().pixels[1], None, "a hand under the confidence bound is left out");
         // The same files scored by the nose and the wrists.
-        let old = read_openpose(dir.path(), &rig, None, OpenPosePoints::NoseAndWrists).unwrap();
+        let old = read_openpose(dir.path(), &rig, None, OpenPosePoints::NoseAndWrists, None).unwrap();
         assert_eq!((old.definition.head.as_str(), old.definition.hands.as_str()), ("nose", "wrist"));
         let wrist = old.frames[&0][1].as_ref().unwrap().point.unwrap();
         assert!((wrist - s.hands[0][0]).norm() < 2e-3);
@@ -706,7 +740,7 @@ mod tests {
             let people = vec![serde_json::json!({ "pose_keypoints_2d": keypoint_values(136, &halpe) })];
             write_frame(halpe136.path(), &name, 0, people);
         }
-        let r = read_openpose(whole.path(), &rig, None, OpenPosePoints::Centres).unwrap();
+        let r = read_openpose(whole.path(), &rig, None, OpenPosePoints::Centres, None).unwrap();
         assert_eq!(r.definition.format, "openpose COCO_133");
         assert_eq!(r.definition.hands, "palm centre (hand keypoints 0, 5, 9, 13, 17)");
         let frame = &r.frames[&0];
@@ -717,11 +751,11 @@ mod tests {
         let centre = Point3::from(s.hands[1].iter().fold(Vector3::zeros(), |a, p| a + p.coords) / 5.0);
         assert!((right.point.unwrap() - centre).norm() < 2e-3);
 
-        let halpe = read_openpose(halpe136.path(), &rig, None, OpenPosePoints::Centres).unwrap();
+        let halpe = read_openpose(halpe136.path(), &rig, None, OpenPosePoints::Centres, None).unwrap();
         assert_eq!(halpe.definition.format, "openpose HALPE_136");
         assert_eq!(halpe.frames, r.frames, "the same person read from either whole-body order");
 
-        let r = read_openpose(body.path(), &rig, None, OpenPosePoints::Centres).unwrap();
+        let r = read_openpose(body.path(), &rig, None, OpenPosePoints::Centres, None).unwrap();
         assert_eq!(r.definition.format, "openpose HALPE_26");
         assert!(r.definition.hands.starts_with("palm centre estimated"), "{}", r.definition.hands);
         for (side, elbow) in elbows.iter().enumerate() {
@@ -742,8 +776,43 @@ mod tests {
         }
         let person = serde_json::json!({ "pose_keypoints_2d": vec![1.0; 75], "hand_left_keypoints_2d": vec![1.0; 60] });
         write_frame(dir.path(), "cam01", 0, vec![person]);
-        let err = format!("{:#}", read_openpose(dir.path(), &rig, None, OpenPosePoints::Centres).unwrap_err());
+        let err = format!("{:#}", read_openpose(dir.path(), &rig, None, OpenPosePoints::Centres, None).unwrap_err());
         assert!(err.contains("cam01_000000000000_keypoints.json"), "{err}");
         assert!(err.contains("hand_left_keypoints_2d: 60 numbers, expected none or 63"), "{err}");
+    }
+
+    #[test]
+    fn files_of_cameras_that_dropped_frames_go_to_their_frame_sets() {
+        let rig = rig3();
+        // A caliscope session whose `cam_1` dropped a frame: its video's position 1 was
+        // captured with frame set 2, and set 1 (no frame of `cam_1`) was left out.
+        let frames = [0, 2, 3];
+        let positions = vec![vec![0, 0, 0], vec![2, 1, 2], vec![3, 2, 3]];
+        let maps = video_frames_of(&frames, &positions, 3);
+        let dir = tempfile::tempdir().unwrap();
+        for (c, camera) in ["cam01", "cam02", "cam03"].into_iter().enumerate() {
+            let video_length = if c == 1 { 3 } else { 4 };
+            for position in 0..video_length {
+                // The frame set this file was captured with, in the nose's x.
+                let frame = maps[c].get(&position).copied().unwrap_or(1);
+                let nose = Point2::new(100.0 * frame as f64 + c as f64, 50.0);
+                let person = serde_json::json!({ "pose_keypoints_2d": keypoint_values(25, &[(0, nose, 0.9)]) });
+                write_frame(dir.path(), camera, position as u64, vec![person]);
+            }
+        }
+        let read = |maps: Option<&[BTreeMap<usize, u64>]>| {
+            read_openpose(dir.path(), &rig, None, OpenPosePoints::NoseAndWrists, maps).unwrap()
+        };
+        let r = read(Some(&maps));
+        assert_eq!(r.frames.keys().copied().collect::<Vec<_>>(), frames);
+        for &frame in &frames {
+            let head = r.frames[&frame][0].as_ref().unwrap();
+            let xs: Vec<f64> = head.pixels.iter().map(|p| p.unwrap().x).collect();
+            let want: Vec<f64> = (0..3).map(|c| 100.0 * frame as f64 + c as f64).collect();
+            assert_eq!(xs, want, "frame {frame}: every view's file of that instant");
+        }
+        // Read as file k = frame k, `cam_1`'s files after the drop are a frame early.
+        let naive = read(None);
+        assert_eq!(naive.frames[&2][0].as_ref().unwrap().pixels[1].unwrap().x, 301.0);
     }
 }

@@ -450,6 +450,16 @@ impl Recording {
         &self.frames
     }
 
+    /// Per frame set (in the order of [`Recording::frames`]), per camera, the frame's position
+    /// in that camera's video, in the video layout: where a caliscope session's cameras
+    /// dropped different frames, a set's positions differ between cameras.
+    pub fn video_positions(&self) -> Option<&[Vec<usize>]> {
+        match &self.pixels {
+            Pixels::Videos { positions, .. } => Some(positions),
+            Pixels::Images(_) => None,
+        }
+    }
+
     /// The image file of frame set `index` for camera `camera`, in the image-folder layout.
     pub fn image_path(&self, index: usize, camera: usize) -> Option<&Path> {
         match &self.pixels {
