@@ -166,7 +166,7 @@ pub enum OpenPosePoints {
     #[default]
     Centres,
     /// The nose and the wrists (EVALUATION.md's OpenPose definition): a nose lies about
-    /// 10 cm in front of the head's centre and a wrist about 4 cm behind the palm's.
+    /// 10 cm in front of the head's centre and a wrist 6 to 7 cm behind the palm's.
     NoseAndWrists,
 }
 
@@ -273,8 +273,9 @@ impl PersonPoints {
 
 /// Reads an OpenPose folder (see the [module documentation](self)) as a reference for
 /// `rig`'s cameras. `order` is the keypoint order; `None` takes it from the keypoint count
-/// (17 COCO_17, 18 COCO, 25 BODY_25, 26 HALPE_26, 133 COCO_133, 136 HALPE_136); a count that does not fit
-/// the order is an error. `points` says which points stand for head and hands.
+/// (17 COCO_17, 18 COCO, 25 BODY_25, 26 HALPE_26, 133 COCO_133, 136 HALPE_136); a count
+/// that does not fit the order is an error. `points` says which points stand for head and
+/// hands.
 /// `video_frames` maps, per rig camera, a position in that camera's video to the recording's
 /// frame number ([`video_frames_of`]): OpenPose numbers a video's frames, and where a
 /// caliscope session's cameras dropped different frames, position k is not frame k in every
