@@ -147,13 +147,17 @@ pub fn bench_recording(
     let mut agreement = AgreementCounts::default();
     for k in 0..frames {
         let started = Instant::now();
-        rec.read_frame_into(k as u64, false, &mut buf)?;
+        let missing = rec.read_frame_into(k as u64, false, &mut buf)?.missing_views;
         decode += started.elapsed().as_secs_f64();
+        if missing & (1 << reference) != 0 {
+            tracing::error!("frame set {k} skipped: the reference camera has no frame in it");
+            continue;
+        }
         let views = rec.views(&buf);
         if adapter.observe(k as u64, &views) {
             engine.set_skin_models(adapter.models())?;
         }
-        let done = engine.push_frame(&views).with_context(|| format!("frame {k}"))?.is_some();
+        let done = engine.push_frame_partial(&views, missing).with_context(|| format!("frame {k}"))?.is_some();
         if done {
             let stats = engine.stats();
             times.push(stats.seconds);

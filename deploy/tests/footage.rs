@@ -82,3 +82,99 @@ fn a_lossless_video_recording_imports_to_its_frames_and_tracks_as_its_images() {
     assert_eq!(a.lines().count(), 12, "every frame");
     assert!(a == b, "track on the videos and on their images write the same file");
 }
+
+#[test]
+fn frames_a_webcam_dropped_leave_their_sets_to_the_other_cameras() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let images = dir.path().join("images");
+    let output = handflow(&["render", "--preset", "signer-3cam", "--frames", "12", "--out", arg(&images)]);
+    assert!(output.status.success(), "{}", describe(&output));
+    // As caliscope records a session whose webcams each dropped a frame: camera k's video
+    // lacks frame set 6 + 2k, and `timestamps.csv` has no row for it.
+    let session = dir.path().join("session");
+    std::fs::create_dir_all(&session).unwrap();
+    for file in ["rig.toml", "truth.json"] {
+        std::fs::copy(images.join(file), session.join(file)).unwrap();
+    }
+    let rig = handflow_protocol::Rig::load(images.join("rig.toml")).unwrap();
+    let dropped = |k: usize| 6 + 2 * k as u64;
+    // The capture times of the images' frame table, to the digit (the rate follows them).
+    let table = std::fs::read_to_string(images.join("frames.csv")).unwrap();
+    let times: Vec<&str> = table.lines().skip(1).map(|line| line.split(',').nth(1).unwrap()).collect();
+    let mut timestamps = String::from("sync_index,cam_id,frame_index,frame_time\n");
+    for (k, camera) in rig.cameras.iter().enumerate() {
+        let kept = dir.path().join(format!("kept-{k}"));
+        std::fs::create_dir_all(&kept).unwrap();
+        for (position, frame) in (0..12u64).filter(|&f| f != dropped(k)).enumerate() {
+            let name = format!("{frame:06}.png");
+            std::fs::copy(images.join(&camera.name).join(name), kept.join(format!("{position:06}.png"))).unwrap();
+            timestamps.push_str(&format!("{frame},{k},{position},{}\n", times[frame as usize]));
+        }
+        let status = Command::new("ffmpeg")
+            .args(["-loglevel", "error", "-y", "-framerate", "30", "-i"])
+            .arg(kept.join("%06d.png"))
+            .args(["-c:v", "ffv1", "-pix_fmt", "bgr0"])
+            .arg(session.join(format!("{}.mkv", camera.name)))
+            .status()
+            .unwrap();
+        assert!(status.success(), "encoding camera {}", camera.name);
+    }
+    std::fs::write(session.join("timestamps.csv"), timestamps).unwrap();
+
+    let (from_images, from_session) = (dir.path().join("images.jsonl"), dir.path().join("session.jsonl"));
+    let output = handflow(&["track", "--recording", arg(&images), "--out", arg(&from_images)]);
+    assert!(output.status.success(), "{}", describe(&output));
+    let output = handflow(&["track", "--recording", arg(&session), "--out", arg(&from_session)]);
+    assert!(output.status.success(), "{}", describe(&output));
+    let log = describe(&output);
+    assert!(log.contains("read with the other cameras"), "the partial sets are noted: {log}");
+    let (all, partial) =
+        (std::fs::read_to_string(&from_images).unwrap(), std::fs::read_to_string(&from_session).unwrap());
+    let frames: Vec<u64> = partial
+        .lines()
+        .map(|line| serde_json::from_str::<serde_json::Value>(line).unwrap()["frame"].as_u64().unwrap())
+        .collect();
+    // The set without the reference camera's frame is skipped, with a word naming the camera;
+    // the two sets without another camera's frame are estimated from the other two.
+    let skipped: Vec<usize> = (0..3).filter(|&k| !frames.contains(&dropped(k))).collect();
+    assert_eq!(skipped.len(), 1, "frames {frames:?}");
+    assert_eq!(frames.len(), 11, "{frames:?}");
+    let reference = &rig.cameras[skipped[0]].name;
+    assert!(log.contains(&format!("the reference camera `{reference}` has no frame in it")), "{log}");
+    // The sets estimated without one camera put every object where the whole sets do.
+    let positions = |text: &str| -> std::collections::BTreeMap<u64, Vec<[f64; 3]>> {
+        text.lines()
+            .map(|line| {
+                let v: serde_json::Value = serde_json::from_str(line).unwrap();
+                let at = |name: &str| -> [f64; 3] {
+                    std::array::from_fn(|i| v["objects"][name]["pos"][i].as_f64().unwrap())
+                };
+                (v["frame"].as_u64().unwrap(), ["head", "left_hand", "right_hand"].map(at).to_vec())
+            })
+            .collect()
+    };
+    let (whole, without) = (positions(&all), positions(&partial));
+    // Each record says which view its set went without, as the streaming service's do.
+    for line in partial.lines() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        let frame = v["frame"].as_u64().unwrap();
+        let want = (0..3).find(|&k| dropped(k) == frame).map_or(0, |k| 1u64 << k);
+        assert_eq!(v["missing_views"].as_u64().unwrap_or(0), want, "frame {frame}");
+    }
+    for k in (0..3).filter(|&k| k != skipped[0]) {
+        let frame = dropped(k);
+        for (object, (a, b)) in whole[&frame].iter().zip(&without[&frame]).enumerate() {
+            let d = (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt();
+            assert!(d < 0.03, "frame {frame} without camera {k}: object {object} {d} m from the whole set's");
+        }
+    }
+    let output = handflow(&["eval", "tracks", "--recording", arg(&session), "--tracks", arg(&from_session), "--json"]);
+    assert!(output.status.success(), "{}", describe(&output));
+    let v: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    for name in ["head", "left_hand", "right_hand"] {
+        assert!(v[name]["rmse_3d_m"].as_f64().unwrap() < 0.05, "{name} tracked through the partial sets: {v}");
+    }
+}

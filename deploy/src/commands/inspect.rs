@@ -111,6 +111,7 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
             sequence: k as u64,
             timestamp_s: entry.timestamp,
             objects: labelled_clusters(&objects),
+            missing_views: entry.missing_views,
             ..ClusterSet::default()
         };
         if tail.len() == TAIL {
@@ -125,19 +126,26 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
     };
     let mut buf = vec![0u8; rec.frame_set_len()];
     for k in 0..rec.len() {
-        match rec.read_frame_into(k as u64, false, &mut buf) {
-            Ok(_) => {}
+        let missing = match rec.read_frame_into(k as u64, false, &mut buf) {
+            Ok(info) => info.missing_views,
             Err(error) if error.is_bad_frame() && k != index => {
                 // `track` skips such a frame set too.
                 tracing::error!("frame set {k} skipped: {error}");
                 continue;
             }
             Err(error) => return Err(anyhow::Error::from(error).context(format!("frame {}", rec.frames()[k].frame))),
+        };
+        if missing & (1 << reference) != 0 {
+            // As `track`: the rays start in the reference view.
+            let camera = &rig.cameras[reference].name;
+            anyhow::ensure!(k != index, "frame {frame} has no view of the reference camera `{camera}`: no estimate");
+            tracing::error!("frame set {k} skipped: the reference camera `{camera}` has no frame in it");
+            continue;
         }
         if k == index {
             inspected = Some(buf.clone());
         }
-        match flow.push(k, &buf, &mut on_estimate) {
+        match flow.push_partial_at(k, &buf, missing, k as u64, &mut on_estimate) {
             Ok(()) => {}
             Err(Halt::Reached) => {
                 reached = true;

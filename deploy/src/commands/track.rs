@@ -123,7 +123,7 @@ pub fn track_recording(
     let fps = rec.frame_rate();
     let frames = rec.len();
     anyhow::ensure!(frames >= 2, "recording `{}` needs at least 2 frames, has {frames}", dir.display());
-    let (mut flow, mut stage, _) = tracker_stages(options, &rig, up.direction, fps)?;
+    let (mut flow, mut stage, reference) = tracker_stages(options, &rig, up.direction, fps)?;
     let mut written = 0;
     let mut skipped: u64 = 0;
     // Every frame gets an estimate (the last through the flush; the first unless the
@@ -134,8 +134,9 @@ pub fn track_recording(
     // each estimate is clustered while the engine works on the next frame (EM would
     // otherwise leave a core idle for its few milliseconds every frame).
     std::thread::scope(|scope| -> Result<()> {
-        // Per frame set: its buffer, or the error that skipped it (a bad frame).
-        let (frame_tx, frame_rx) = std::sync::mpsc::sync_channel::<Result<Vec<u8>, String>>(2);
+        // Per frame set: its buffer and the cameras without a frame in it, or the error that
+        // skipped it (a bad frame).
+        let (frame_tx, frame_rx) = std::sync::mpsc::sync_channel::<Result<(Vec<u8>, u32), String>>(2);
         let (spare_tx, spare_rx) = std::sync::mpsc::channel::<Vec<u8>>();
         let (points_tx, points_rx) =
             std::sync::mpsc::sync_channel::<(Estimate, f64, Vec<ScenePoint>, Option<FaceCue>)>(2);
@@ -147,7 +148,7 @@ pub fn track_recording(
             for k in 0..frames {
                 let mut buf = spare_rx.try_recv().unwrap_or_else(|_| vec![0u8; rec_ref.frame_set_len()]);
                 let read = match rec_ref.read_frame_into(k as u64, false, &mut buf) {
-                    Ok(_) => Ok(buf),
+                    Ok(info) => Ok((buf, info.missing_views)),
                     Err(error) if error.is_bad_frame() => Err(error.to_string()),
                     Err(error) => {
                         let _ = fatal_tx.send(error.into());
@@ -175,6 +176,7 @@ pub fn track_recording(
                             sequence: estimate.index as u64,
                             timestamp_s: entry.timestamp,
                             objects: labelled_clusters(&objects),
+                            missing_views: entry.missing_views,
                             ..ClusterSet::default()
                         };
                         TrajectoryRecord::from_sample(&trajectory_sample(&set, estimate.dropped, 0))
@@ -201,8 +203,19 @@ pub fn track_recording(
             let Ok(read) = frame_rx.recv() else {
                 return Err(fatal_rx.try_recv().unwrap_or_else(|_| anyhow::anyhow!("the decoding thread stopped")));
             };
-            let buf = match read {
-                Ok(buf) => buf,
+            let (buf, missing) = match read {
+                Ok((buf, missing)) if missing & (1 << reference) == 0 => (buf, missing),
+                Ok((buf, _)) => {
+                    // The rays start in the reference view: as the flow stage does, the set
+                    // is skipped, and the engine spans the gap.
+                    skipped += 1;
+                    tracing::error!(
+                        "frame set {k} skipped ({skipped} so far): the reference camera `{}` has no frame in it",
+                        rig.cameras[reference].name
+                    );
+                    let _ = spare_tx.send(buf);
+                    continue;
+                }
                 Err(problem) => {
                     // One error per bad frame set; the stream goes on without it.
                     skipped += 1;
@@ -212,8 +225,14 @@ pub fn track_recording(
             };
             // Indexed by position, so a set skipped above is a gap the engine spans (as the
             // flow stage does on a replay's sequence numbers) rather than one frame interval.
-            let pushed =
-                flow.push_partial_at(Estimate { index: k, dropped: skipped }, &buf, 0, k as u64, &mut on_estimate);
+            // A camera that dropped its frame of the set is left out of it, as live.
+            let pushed = flow.push_partial_at(
+                Estimate { index: k, dropped: skipped },
+                &buf,
+                missing,
+                k as u64,
+                &mut on_estimate,
+            );
             let _ = spare_tx.send(buf);
             pushed.with_context(|| format!("frame {}", rec.frames()[k].frame))?;
             for record in record_rx.try_iter() {

@@ -399,12 +399,15 @@ pub fn read_openpose(
 }
 
 /// Per camera, the recording's frame number of each position in that camera's video, from
-/// the frame sets' `positions` (per set, per camera) and their frame numbers.
-pub fn video_frames_of(frames: &[u64], positions: &[Vec<usize>], cameras: usize) -> Vec<BTreeMap<usize, u64>> {
+/// the frame sets' `positions` (per set, per camera; `None` where the camera has no frame in
+/// the set) and their frame numbers.
+pub fn video_frames_of(frames: &[u64], positions: &[Vec<Option<usize>>], cameras: usize) -> Vec<BTreeMap<usize, u64>> {
     let mut maps = vec![BTreeMap::new(); cameras];
     for (&frame, set) in frames.iter().zip(positions) {
-        for (map, &position) in maps.iter_mut().zip(set) {
-            map.insert(position, frame);
+        for (map, position) in maps.iter_mut().zip(set) {
+            if let Some(position) = *position {
+                map.insert(position, frame);
+            }
         }
     }
     maps
@@ -786,9 +789,14 @@ mod tests {
     fn files_of_cameras_that_dropped_frames_go_to_their_frame_sets() {
         let rig = rig3();
         // A caliscope session whose `cam_1` dropped a frame: its video's position 1 was
-        // captured with frame set 2, and set 1 (no frame of `cam_1`) was left out.
-        let frames = [0, 2, 3];
-        let positions = vec![vec![0, 0, 0], vec![2, 1, 2], vec![3, 2, 3]];
+        // captured with frame set 2, and set 1 has no frame of `cam_1`.
+        let frames = [0, 1, 2, 3];
+        let positions = vec![
+            vec![Some(0), Some(0), Some(0)],
+            vec![Some(1), None, Some(1)],
+            vec![Some(2), Some(1), Some(2)],
+            vec![Some(3), Some(2), Some(3)],
+        ];
         let maps = video_frames_of(&frames, &positions, 3);
         let dir = tempfile::tempdir().unwrap();
         for (c, camera) in ["cam01", "cam02", "cam03"].into_iter().enumerate() {
@@ -808,9 +816,10 @@ mod tests {
         assert_eq!(r.frames.keys().copied().collect::<Vec<_>>(), frames);
         for &frame in &frames {
             let head = r.frames[&frame][0].as_ref().unwrap();
-            let xs: Vec<f64> = head.pixels.iter().map(|p| p.unwrap().x).collect();
-            let want: Vec<f64> = (0..3).map(|c| 100.0 * frame as f64 + c as f64).collect();
-            assert_eq!(xs, want, "frame {frame}: every view's file of that instant");
+            let xs: Vec<Option<f64>> = head.pixels.iter().map(|p| p.map(|p| p.x)).collect();
+            let want: Vec<Option<f64>> =
+                (0..3).map(|c| (frame != 1 || c != 1).then_some(100.0 * frame as f64 + c as f64)).collect();
+            assert_eq!(xs, want, "frame {frame}: every view's file of that instant, none of `cam_1` in set 1");
         }
         // Read as file k = frame k, `cam_1`'s files after the drop are a frame early.
         let naive = read(None);

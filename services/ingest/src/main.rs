@@ -113,13 +113,13 @@ impl Source {
         }
     }
 
-    /// Fills `dst` with replay position `sequence`; returns its frame number and stream time,
-    /// or `None` for a frame set that cannot be read (already reported: the stream goes on
-    /// without it).
-    fn fill(&mut self, sequence: u64, looped: bool, dst: &mut [u8]) -> Result<Option<(u64, f64)>> {
+    /// Fills `dst` with replay position `sequence`; returns its frame number, stream time and
+    /// the views it lacks (a camera that dropped its frame), or `None` for a frame set that
+    /// cannot be read (already reported: the stream goes on without it).
+    fn fill(&mut self, sequence: u64, looped: bool, dst: &mut [u8]) -> Result<Option<(u64, f64, u32)>> {
         match self {
             Source::Recording(r) => match r.read_frame_into(sequence, looped, dst) {
-                Ok(info) => Ok(Some((info.frame, info.timestamp))),
+                Ok(info) => Ok(Some((info.frame, info.timestamp, info.missing_views))),
                 Err(error) if error.is_bad_frame() => {
                     tracing::error!("frame set {sequence} skipped, counted as dropped: {error}");
                     Ok(None)
@@ -131,7 +131,7 @@ impl Source {
                 let frame = (sequence % n) as u32;
                 renderer.render_into(frame, dst, masks);
                 // Time keeps increasing across loops.
-                Ok(Some((u64::from(frame), sequence as f64 / renderer.spec().fps)))
+                Ok(Some((u64::from(frame), sequence as f64 / renderer.spec().fps, 0)))
             }
         }
     }
@@ -318,7 +318,7 @@ fn send_frame_set(
     let mut sample = frames.publisher.loan_slice(shape.len).context("loaning a frame sample")?;
     let filled =
         source.fill(sequence, looped, sample.payload_mut()).with_context(|| format!("frame set {sequence}"))?;
-    let Some((frame, timestamp_s)) = filled else {
+    let Some((frame, timestamp_s, missing_views)) = filled else {
         return Ok(Sent::Skipped);
     };
     *sample.user_header_mut() = FrameHeader {
@@ -332,7 +332,7 @@ fn send_frame_set(
         view_count: shape.view_count,
         view_sizes: shape.view_sizes,
         flags: 0,
-        missing_views: 0,
+        missing_views,
         payload_len: shape.len as u64,
     };
     let delivered = sample.send().with_context(|| format!("sending frame set {sequence}"))?;

@@ -162,6 +162,60 @@ fn caliscope_sessions_group_frames_by_sync_index_and_match_cameras_by_number() {
 }
 
 #[test]
+fn a_frame_a_webcam_dropped_leaves_its_set_to_the_other_cameras() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    rig(&["cam_0", "cam_1", "cam_2"], W, H).save(dir.path().join("rig.toml")).unwrap();
+    // `cam_1` dropped its frame of sync 2 (its video holds five of the six instants), `cam_2`
+    // its frames of syncs 2 and 4: set 2 has one camera, set 4 two.
+    let kept = |c: u32, sync: u32| !matches!((c, sync), (1, 2) | (2, 2) | (2, 4));
+    let mut csv = String::from("sync_index,cam_id,frame_index,frame_time\n");
+    for c in 0..3u32 {
+        let frames = tempfile::tempdir().unwrap();
+        let mut position = 0;
+        for sync in 0..FRAMES {
+            if kept(c, sync) {
+                pixels(c, sync).save(frames.path().join(format!("{position:06}.png"))).unwrap();
+                csv.push_str(&format!("{sync},{c},{position},{}\n", f64::from(sync) * 0.1 + 0.01 * f64::from(c)));
+                position += 1;
+            }
+        }
+        let status = Command::new("ffmpeg")
+            .args(["-loglevel", "error", "-y", "-framerate", "10", "-i"])
+            .arg(frames.path().join("%06d.png"))
+            .args(LOSSLESS)
+            .arg(dir.path().join(format!("cam_{c}.mkv")))
+            .status()
+            .unwrap();
+        assert!(status.success());
+    }
+    std::fs::write(dir.path().join("timestamps.csv"), csv).unwrap();
+    let rec = Recording::open(dir.path()).unwrap();
+    let numbers: Vec<u64> = rec.frames().iter().map(|f| f.frame).collect();
+    assert_eq!(numbers, vec![0, 1, 3, 4, 5], "set 2 has one camera's frame: left out");
+    let missing: Vec<u32> = rec.frames().iter().map(|f| f.missing_views).collect();
+    assert_eq!(missing, vec![0, 0, 0, 0b100, 0], "set 4 is read without `cam_2`");
+    let notes = rec.notes().join("\n");
+    assert!(notes.contains("read with the other cameras: `cam_2` 1\n"), "{notes}");
+    assert!(notes.contains("1 of 6 frame sets have frames from fewer than 2 cameras"), "{notes}");
+    // Positions after a drop are the camera's own: set 3 is `cam_1`'s position 2, `cam_2`'s 2.
+    let mut buf = vec![0u8; rec.frame_set_len()];
+    for (index, sync) in [(2usize, 3u32), (3, 4), (4, 5)] {
+        let info = rec.read_frame_into(index as u64, false, &mut buf).unwrap();
+        assert_eq!(info.missing_views, missing[index]);
+        for (c, view) in rec.views(&buf).into_iter().enumerate() {
+            if kept(c as u32, sync) {
+                assert_eq!(view, pixels(c as u32, sync).as_raw().as_slice(), "set {sync}, camera {c}");
+            } else {
+                assert!(view.iter().all(|&b| b == 0), "set {sync}: the dropped view reads as zeros");
+            }
+        }
+    }
+}
+
+#[test]
 fn padded_videos_are_accepted_and_other_sizes_refused_naming_camera_and_sizes() {
     if !have_ffmpeg() {
         return;

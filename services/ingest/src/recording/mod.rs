@@ -20,7 +20,8 @@
 //!   by name, else by the number in the name ([`crate::camera_match`]). Frame times come from
 //!   `frames.csv` when present (row r is frame r of every video); else from a caliscope
 //!   `timestamps.csv` (frames with one `sync_index` form a set; frame numbers count
-//!   `sync_index` from the first; sets some camera lacks are left out with a note); else from
+//!   `sync_index` from the first; a set some camera lacks, a webcam's dropped frame, is read
+//!   without that view, as a live stream gets it, while two views remain); else from
 //!   the containers' timestamps (frame k of every video is set k). A video up to 15 pixels
 //!   narrower or shorter than its calibration (encoders pad to multiples of 16) is accepted
 //!   with a note and the intrinsics unchanged.
@@ -215,6 +216,9 @@ pub struct FrameEntry {
     /// Largest difference between the cameras' capture times of this set, seconds, when the
     /// recording says each camera's time.
     pub capture_spread_s: Option<f64>,
+    /// Bit `k` set: camera `k` (rig order) has no frame in this set (a webcam dropped it).
+    /// Its view reads as zeros, and the stages leave it out as a live camera's missing view.
+    pub missing_views: u32,
 }
 
 /// Which layout a recording has.
@@ -237,12 +241,17 @@ pub struct OpenOptions {
     pub frames: Option<usize>,
 }
 
+/// Per camera of a frame set, the position of its frame in the camera's video (`None`: the
+/// camera has no frame in the set).
+pub type SetPositions = Vec<Option<usize>>;
+
 /// Where a recording's pixels are.
 enum Pixels {
     /// Per frame set, per camera, the image file.
     Images(Vec<Vec<PathBuf>>),
-    /// Per camera a decoder; per frame set, per camera, the frame's position in its video.
-    Videos { readers: Vec<Mutex<VideoReader>>, positions: Vec<Vec<usize>>, codecs: Vec<String> },
+    /// Per camera a decoder; per frame set, per camera, the frame's position in its video
+    /// (`None`: the camera has no frame in the set).
+    Videos { readers: Vec<Mutex<VideoReader>>, positions: Vec<SetPositions>, codecs: Vec<String> },
 }
 
 /// A checked recording, ready to be read frame by frame.
@@ -283,6 +292,8 @@ pub struct FrameInfo {
     /// Capture time, seconds; when looping, later passes are shifted by the recording's
     /// duration plus one frame interval so time keeps increasing.
     pub timestamp: f64,
+    /// Cameras without a frame in this set ([`FrameEntry::missing_views`]).
+    pub missing_views: u32,
 }
 
 /// Capture-time spread within frame sets, over a recording.
@@ -453,7 +464,7 @@ impl Recording {
     /// Per frame set (in the order of [`Recording::frames`]), per camera, the frame's position
     /// in that camera's video, in the video layout: where a caliscope session's cameras
     /// dropped different frames, a set's positions differ between cameras.
-    pub fn video_positions(&self) -> Option<&[Vec<usize>]> {
+    pub fn video_positions(&self) -> Option<&[SetPositions]> {
         match &self.pixels {
             Pixels::Videos { positions, .. } => Some(positions),
             Pixels::Images(_) => None,
@@ -576,7 +587,12 @@ impl Recording {
             }
             None => self.decode_into(index, dst)?,
         }
-        Ok(FrameInfo { sequence, frame: entry.frame, timestamp: entry.timestamp + pass as f64 * self.loop_period() })
+        Ok(FrameInfo {
+            sequence,
+            frame: entry.frame,
+            timestamp: entry.timestamp + pass as f64 * self.loop_period(),
+            missing_views: entry.missing_views,
+        })
     }
 
     /// Decodes frame set `index` into `dst` (its exact size), cameras in parallel.
@@ -606,6 +622,12 @@ impl Recording {
                     .zip(readers.par_iter())
                     .zip(positions[index].par_iter())
                     .map(|(((view, camera), reader), &position)| {
+                        // A frame the camera dropped: its view says nothing (the set's
+                        // `missing_views` tells the stages so).
+                        let Some(position) = position else {
+                            view.fill(0);
+                            return Ok(());
+                        };
                         let video_error =
                             |error| RecordingError::Video { camera: camera.name.clone(), frame: Some(frame), error };
                         let mut reader = reader.lock().map_err(|_| {
@@ -743,8 +765,10 @@ fn open_images(dir: &Path, rig: Rig) -> Result<(Rig, Vec<FrameEntry>, ImageSets)
         }
         Ok(())
     })?;
-    let frames =
-        table.iter().map(|&(frame, timestamp)| FrameEntry { frame, timestamp, capture_spread_s: None }).collect();
+    let frames = table
+        .iter()
+        .map(|&(frame, timestamp)| FrameEntry { frame, timestamp, capture_spread_s: None, missing_views: 0 })
+        .collect();
     Ok((rig, frames, images))
 }
 
@@ -809,9 +833,9 @@ fn open_videos(
         let rows = table.len().min(shortest);
         let frames = table[..rows]
             .iter()
-            .map(|&(frame, timestamp)| FrameEntry { frame, timestamp, capture_spread_s: None })
+            .map(|&(frame, timestamp)| FrameEntry { frame, timestamp, capture_spread_s: None, missing_views: 0 })
             .collect();
-        (frames, (0..rows).map(|r| vec![r; rig.cameras.len()]).collect())
+        (frames, (0..rows).map(|r| vec![Some(r); rig.cameras.len()]).collect())
     } else if let Some(path) = caliscope {
         let sets = read_caliscope_timestamps(&path)?;
         synced_frames(&rig, &sets, &lengths, notes).map_err(|problem| RecordingError::Frames {
@@ -833,13 +857,14 @@ fn open_videos(
                     frame: k as u64,
                     timestamp: times.iter().sum::<f64>() / times.len() as f64,
                     capture_spread_s: Some(hi - lo),
+                    missing_views: 0,
                 }
             })
             .collect();
-        (frames, (0..shortest).map(|k| vec![k; rig.cameras.len()]).collect())
+        (frames, (0..shortest).map(|k| vec![Some(k); rig.cameras.len()]).collect())
     };
     if frames.is_empty() {
-        return Err(layout_error("no frame set has a frame from every camera".into()));
+        return Err(layout_error(format!("no frame set has frames from {MIN_CAMERAS} cameras")));
     }
     let readers = paths
         .iter()
@@ -967,13 +992,16 @@ fn keep_indices<T>(items: &mut Vec<T>, kept: &[usize]) {
 
 /// Frame sets of a caliscope session: camera `cam_N` (or the camera matched to the number N)
 /// is caliscope's `cam_id` N. Frame numbers count `sync_index` from the first set, so left
-/// out sets keep their place in time.
+/// out sets keep their place in time. A set some cameras lack (a webcam dropped its frame)
+/// is kept with those views missing while [`MIN_CAMERAS`] have theirs: with four webcams each
+/// dropping a few percent of frames, leaving such sets out loses one set in every few, and
+/// every object's estimate with it.
 fn synced_frames(
     rig: &Rig,
     sets: &[SyncedSet],
     lengths: &[usize],
     notes: &mut Vec<String>,
-) -> Result<(Vec<FrameEntry>, Vec<Vec<usize>>), String> {
+) -> Result<(Vec<FrameEntry>, Vec<SetPositions>), String> {
     let mut ids: Vec<u64> = sets.iter().flat_map(|s| s.frames.keys().copied()).collect();
     ids.sort_unstable();
     ids.dedup();
@@ -983,29 +1011,50 @@ fn synced_frames(
     let camera_ids: Vec<u64> = matched.iter().map(|&k| ids[k]).collect();
     let first = sets.first().map_or(0, |s| s.sync_index);
     let (mut frames, mut positions) = (Vec::new(), Vec::new());
-    let mut incomplete = 0usize;
+    let (mut partial, mut left_out) = (vec![0usize; camera_ids.len()], 0usize);
     for set in sets {
-        let per_camera: Option<Vec<(usize, f64)>> = camera_ids
+        let per_camera: Vec<Option<(usize, f64)>> = camera_ids
             .iter()
             .zip(lengths)
             .map(|(id, &len)| set.frames.get(id).copied().filter(|&(position, _)| position < len))
             .collect();
-        let Some(per_camera) = per_camera else {
-            incomplete += 1;
+        let times: Vec<f64> = per_camera.iter().flatten().map(|&(_, t)| t).collect();
+        if times.len() < MIN_CAMERAS {
+            left_out += 1;
             continue;
-        };
-        let times: Vec<f64> = per_camera.iter().map(|&(_, t)| t).collect();
+        }
+        let mut missing_views = 0u32;
+        for (k, frame) in per_camera.iter().enumerate() {
+            if frame.is_none() {
+                partial[k] += 1;
+                missing_views |= 1 << k;
+            }
+        }
         let (lo, hi) = times.iter().fold((f64::MAX, f64::MIN), |(lo, hi), &t| (lo.min(t), hi.max(t)));
         frames.push(FrameEntry {
             frame: set.sync_index - first,
             timestamp: times.iter().sum::<f64>() / times.len() as f64,
             capture_spread_s: Some(hi - lo),
+            missing_views,
         });
-        positions.push(per_camera.iter().map(|&(position, _)| position).collect());
+        positions.push(per_camera.iter().map(|frame| frame.map(|(position, _)| position)).collect());
     }
-    if incomplete > 0 {
+    let lacking: Vec<String> = partial
+        .iter()
+        .zip(&rig.cameras)
+        .filter(|(&n, _)| n > 0)
+        .map(|(n, camera)| format!("`{}` {n}", camera.name))
+        .collect();
+    if !lacking.is_empty() {
         notes.push(format!(
-            "{incomplete} of {} frame sets lack a camera's frame (or lie beyond its video) and are left out",
+            "frame sets without a camera's frame (dropped in capture, or beyond its video), read with the other \
+             cameras: {}",
+            lacking.join(", ")
+        ));
+    }
+    if left_out > 0 {
+        notes.push(format!(
+            "{left_out} of {} frame sets have frames from fewer than {MIN_CAMERAS} cameras and are left out",
             sets.len()
         ));
     }
