@@ -18,6 +18,9 @@ Each variant changes one thing a user's session may differ in:
   lossy          videos re-encoded at H.264 CRF 30 (a streaming-quality recording)
   warm-light     videos under warmer light (3500 K)
   dim            videos darker and less contrasted (a badly lit room)
+  dropped-frames every camera drops one frame in DROP_EVERY at its own instants (a webcam
+                 that cannot keep up), its video without them, `timestamps.csv` as caliscope
+                 writes it: no row for a camera's dropped frame
 
 Needs ffmpeg for the video variants and Python 3.11 (tomllib). The videos are re-encoded once
 into OUT and reused by later runs.
@@ -171,6 +174,15 @@ def encode(src, dst, video_filter, crf):
     tmp.rename(dst)
 
 
+# The dropped-frames variant: camera k drops its frames n with (n + dropped_offset(k)) %
+# DROP_EVERY == 0, 5 % of each camera's frames, at instants no two cameras share.
+DROP_EVERY = 20
+
+
+def dropped_offset(k):
+    return 7 + 5 * k
+
+
 def build(name, session, out, cameras, reference):
     """Writes variant `name` into out/name and returns its folder."""
     d = out / name
@@ -220,6 +232,11 @@ def build(name, session, out, cameras, reference):
         rig, video = cameras, ("colortemperature=temperature=3500", 16)
     elif name == "dim":
         rig, video = cameras, ("eq=brightness=-0.08:contrast=0.7:gamma=0.8", 16)
+    elif name == "dropped-frames":
+        # Near-lossless re-encoding of the frames each camera kept.
+        rig = cameras
+        video = {n: (f"select='not(eq(mod(n+{dropped_offset(k)},{DROP_EVERY}),0))',setpts=N/FRAME_RATE/TB", 8)
+                 for k, n in enumerate(names)}
     else:
         raise SystemExit(f"unknown variant `{name}`")
     if rig is not None:
@@ -239,9 +256,20 @@ def build(name, session, out, cameras, reference):
         with open(d / "timestamps.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
             w.writeheader()
-            for r in rows:
-                if f"cam_{r['cam_id']}" in kept:
-                    w.writerow(r)
+            position = {}
+            for r in sorted(rows, key=lambda r: (int(r["cam_id"]), int(r["sync_index"]))):
+                if f"cam_{r['cam_id']}" not in kept:
+                    continue
+                if name == "dropped-frames":
+                    k = names.index(f"cam_{r['cam_id']}")
+                    n = int(r["frame_index"]) - min(int(q["frame_index"]) for q in rows if q["cam_id"] == r["cam_id"])
+                    if (n + dropped_offset(k)) % DROP_EVERY == 0:
+                        continue
+                    # caliscope's frame_index counts the frames the camera's video holds.
+                    p = position.get(k, int(r["frame_index"]))
+                    position[k] = p + 1
+                    r = dict(r, frame_index=str(p))
+                w.writerow(r)
     (d / "reference.json").write_text(json.dumps(ref))
     return d
 
@@ -291,7 +319,7 @@ def main():
     frontal = most_frontal(cameras)
     names += [f"pair-{'-'.join(sorted([frontal, c['name']]))}" for c in cameras if c["name"] != frontal]
     names += ["sideways-cam_2", "sideways-cam_0"]
-    names += ["lossy", "warm-light", "dim"]
+    names += ["lossy", "warm-light", "dim", "dropped-frames"]
     if args.only:
         names = [n for n in names if n in args.only]
     objects = ("head", "left_hand", "right_hand")
