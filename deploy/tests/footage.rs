@@ -137,12 +137,19 @@ fn frames_a_webcam_dropped_leave_their_sets_to_the_other_cameras() {
         .lines()
         .map(|line| serde_json::from_str::<serde_json::Value>(line).unwrap()["frame"].as_u64().unwrap())
         .collect();
-    // The set without the reference camera's frame is skipped, with a word naming the camera;
-    // the two sets without another camera's frame are estimated from the other two.
-    let skipped: Vec<usize> = (0..3).filter(|&k| !frames.contains(&dropped(k))).collect();
-    assert_eq!(skipped.len(), 1, "frames {frames:?}");
-    assert_eq!(frames.len(), 11, "{frames:?}");
-    let reference = &rig.cameras[skipped[0]].name;
+    // Every set has its record. The one without the reference camera's frame, which the
+    // engine cannot estimate, is the tracks' predictions, with a word naming the camera; the
+    // two without another camera's frame are estimated from the other two.
+    assert_eq!(frames, (0..12).collect::<Vec<u64>>());
+    let states = |line: &str| -> Vec<String> {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        ["head", "left_hand", "right_hand"].map(|o| v["objects"][o]["state"].as_str().unwrap().to_owned()).to_vec()
+    };
+    let coasted: Vec<usize> = (0..3)
+        .filter(|&k| states(partial.lines().nth(dropped(k) as usize).unwrap()).iter().all(|s| s == "predicted"))
+        .collect();
+    assert_eq!(coasted.len(), 1, "one set lacks the reference camera's frame");
+    let reference = &rig.cameras[coasted[0]].name;
     assert!(log.contains(&format!("the reference camera `{reference}` has no frame in it")), "{log}");
     // The sets estimated without one camera put every object where the whole sets do.
     let positions = |text: &str| -> std::collections::BTreeMap<u64, Vec<[f64; 3]>> {
@@ -164,7 +171,8 @@ fn frames_a_webcam_dropped_leave_their_sets_to_the_other_cameras() {
         let want = (0..3).find(|&k| dropped(k) == frame).map_or(0, |k| 1u64 << k);
         assert_eq!(v["missing_views"].as_u64().unwrap_or(0), want, "frame {frame}");
     }
-    for k in (0..3).filter(|&k| k != skipped[0]) {
+    // The predictions too, the hands moving less than a few centimetres in a frame interval.
+    for k in 0..3 {
         let frame = dropped(k);
         for (object, (a, b)) in whole[&frame].iter().zip(&without[&frame]).enumerate() {
             let d = (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt();

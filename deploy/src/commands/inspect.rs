@@ -88,7 +88,7 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
         let (first, last) = (rec.frames().first().map_or(0, |f| f.frame), rec.frames().last().map_or(0, |f| f.frame));
         format!("frame {frame} is not in recording `{}` (frames {first} to {last} read)", dir.display())
     })?;
-    let (mut flow, mut stage, reference) = tracker_stages::<usize>(options, &rig, up.direction, fps)?;
+    let (mut flow, mut stage, reference) = tracker_stages::<(usize, Vec<usize>)>(options, &rig, up.direction, fps)?;
     anyhow::ensure!(
         index > 0 || flow.engine().config().estimates_first_frame(),
         "frame {frame} is the first frame read: it has no estimate with `estimate_first_frame=false` (the engine \
@@ -98,13 +98,15 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
     let mut points: Vec<ScenePoint> = Vec::new();
     let mut inspected: Option<Vec<u8>> = None;
     let mut reached = false;
-    // The same work per estimate as `track`: points, clustering and labelling, a record.
-    let mut on_estimate = |k: usize, engine: &SceneFlowEngine, face: Option<FaceCue>| -> Result<(), Halt> {
+    // The same work per estimate as `track`: points, clustering and labelling, a record;
+    // the sets before it without a frame of the reference camera clustered empty, first.
+    let mut cluster = |k: usize, engine: Option<&SceneFlowEngine>, face: Option<FaceCue>| -> Result<(), Halt> {
         let entry = rec.frames().get(k).with_context(|| format!("estimate for frame set {k} beyond the recording"))?;
         points.clear();
-        points.extend(scene_points(engine));
+        points.extend(engine.into_iter().flat_map(scene_points));
         let face = crate::recording_engine::cluster_face_cue(face, fps);
-        let objects = stage.update(entry.timestamp, fps, ray_spread_variance(engine), &points, face);
+        let spread = engine.map_or(0.0, ray_spread_variance);
+        let objects = stage.update(entry.timestamp, fps, spread, &points, face);
         let set = ClusterSet {
             protocol_version: PROTOCOL_VERSION,
             frame: entry.frame,
@@ -124,6 +126,14 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
             Ok(())
         }
     };
+    let mut on_estimate =
+        |(k, coast_before): (usize, Vec<usize>), engine: &SceneFlowEngine, face: Option<FaceCue>| -> Result<(), Halt> {
+            for coasted in coast_before {
+                cluster(coasted, None, None)?;
+            }
+            cluster(k, Some(engine), face)
+        };
+    let mut coast_before: Vec<usize> = Vec::new();
     let mut buf = vec![0u8; rec.frame_set_len()];
     for k in 0..rec.len() {
         let missing = match rec.read_frame_into(k as u64, false, &mut buf) {
@@ -136,16 +146,17 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
             Err(error) => return Err(anyhow::Error::from(error).context(format!("frame {}", rec.frames()[k].frame))),
         };
         if missing & (1 << reference) != 0 {
-            // As `track`: the rays start in the reference view.
+            // As `track`: the rays start in the reference view, the tracks coast there.
             let camera = &rig.cameras[reference].name;
             anyhow::ensure!(k != index, "frame {frame} has no view of the reference camera `{camera}`: no estimate");
-            tracing::error!("frame set {k} skipped: the reference camera `{camera}` has no frame in it");
+            tracing::error!("frame set {k}: the reference camera `{camera}` has no frame in it");
+            coast_before.push(k);
             continue;
         }
         if k == index {
             inspected = Some(buf.clone());
         }
-        match flow.push_partial_at(k, &buf, missing, k as u64, &mut on_estimate) {
+        match flow.push_partial_at((k, std::mem::take(&mut coast_before)), &buf, missing, k as u64, &mut on_estimate) {
             Ok(()) => {}
             Err(Halt::Reached) => {
                 reached = true;

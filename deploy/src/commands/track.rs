@@ -73,12 +73,15 @@ pub struct TrackSummary {
     pub reinitialisations: u64,
 }
 
-/// What the engine's estimate of a frame set carries to clustering: which set, and how many
-/// sets were skipped before it (reported in its trajectory record).
-#[derive(Clone, Copy, Debug)]
+/// What the engine's estimate of a frame set carries to clustering: which set, how many
+/// sets were skipped before it (reported in its trajectory record), and the sets just
+/// before it that had no frame of the reference camera: the engine cannot estimate those,
+/// and clustering gets them empty, first, so their records are the tracks' predictions.
+#[derive(Clone, Debug)]
 struct Estimate {
     index: usize,
     dropped: u64,
+    coast_before: Vec<usize>,
 }
 
 /// The flow stream and the cluster stage `track` and `inspect` run on a recording's `rig`
@@ -187,7 +190,15 @@ pub fn track_recording(
                 }
             }
         });
+        // A set without points: clustering coasts every track on its prediction.
+        let coast = |index: usize, dropped: u64| -> Result<()> {
+            let empty = Estimate { index, dropped, coast_before: Vec::new() };
+            points_tx.send((empty, 0.0, Vec::new(), None)).context("the clustering thread stopped")
+        };
         let mut on_estimate = |estimate: Estimate, engine: &SceneFlowEngine, face: Option<FaceCue>| -> Result<()> {
+            for &index in &estimate.coast_before {
+                coast(index, estimate.dropped)?;
+            }
             let mut points = spare_points_rx.try_recv().unwrap_or_default();
             points.clear();
             points.extend(scene_points(engine));
@@ -199,6 +210,7 @@ pub fn track_recording(
             written += 1;
             on_record(&record?, written, total.saturating_sub(skipped as usize))
         };
+        let mut coast_before: Vec<usize> = Vec::new();
         for k in 0..frames {
             let Ok(read) = frame_rx.recv() else {
                 return Err(fatal_rx.try_recv().unwrap_or_else(|_| anyhow::anyhow!("the decoding thread stopped")));
@@ -206,13 +218,14 @@ pub fn track_recording(
             let (buf, missing) = match read {
                 Ok((buf, missing)) if missing & (1 << reference) == 0 => (buf, missing),
                 Ok((buf, _)) => {
-                    // The rays start in the reference view: as the flow stage does, the set
-                    // is skipped, and the engine spans the gap.
-                    skipped += 1;
+                    // The rays start in the reference view: as in the flow stage, the engine
+                    // spans the set, and its record is the tracks' predictions.
                     tracing::error!(
-                        "frame set {k} skipped ({skipped} so far): the reference camera `{}` has no frame in it",
+                        "frame set {k}: the reference camera `{}` has no frame in it; its trajectories are the \
+                         tracks' predictions",
                         rig.cameras[reference].name
                     );
+                    coast_before.push(k);
                     let _ = spare_tx.send(buf);
                     continue;
                 }
@@ -227,7 +240,7 @@ pub fn track_recording(
             // flow stage does on a replay's sequence numbers) rather than one frame interval.
             // A camera that dropped its frame of the set is left out of it, as live.
             let pushed = flow.push_partial_at(
-                Estimate { index: k, dropped: skipped },
+                Estimate { index: k, dropped: skipped, coast_before: std::mem::take(&mut coast_before) },
                 &buf,
                 missing,
                 k as u64,
@@ -241,6 +254,9 @@ pub fn track_recording(
         }
         let finished = flow.finish(&mut on_estimate);
         finished.context("end of the recording")?;
+        for index in coast_before.drain(..) {
+            coast(index, skipped)?;
+        }
         drop(points_tx);
         for record in record_rx {
             hand_on(record, skipped)?;

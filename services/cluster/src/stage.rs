@@ -903,6 +903,44 @@ mod tests {
     }
 
     #[test]
+    fn a_frame_set_without_points_coasts_every_track_on_its_prediction() {
+        // A head and two hands moving sideways at 0.6 m/s; one frame set gives no points
+        // (its reference camera dropped the frame): every track coasts on its prediction,
+        // then the next set measures them again, each where it is, no identity swapped.
+        let moving = |x: f32, y: f32, t: f64| {
+            let dx = (0.6 * t) as f32;
+            (0..200).map(move |i| ScenePoint {
+                position: [x + dx + (i % 10) as f32 * 0.004, y + (i / 10) as f32 * 0.004, 0.0],
+                velocity: [0.6 / 30.0, 0.0, 0.0],
+                weight: 1.0,
+                skin: 1.0,
+            })
+        };
+        let body = |t: f64| -> Vec<ScenePoint> {
+            moving(0.0, 1.6, t).chain(moving(0.3, 1.1, t)).chain(moving(-0.3, 1.1, t)).collect()
+        };
+        let mut stage = ClusterStage::new(&reference(0.0), Vector3::y(), false).with_hand_localisation(false);
+        let fps = 30.0;
+        let mut last = stage.update(0.0, fps, 0.0, &body(0.0), None);
+        for f in 1..6 {
+            last = stage.update(f as f64 / fps, fps, 0.0, &body(f as f64 / fps), None);
+        }
+        assert!(last.iter().all(|o| o.state == State::Tracked), "{last:?}");
+        let coasted = stage.update(6.0 / fps, fps, 0.0, &[], None);
+        for (k, (o, before)) in coasted.iter().zip(&last).enumerate() {
+            assert_eq!(o.state, State::Predicted, "object {k}: {o:?}");
+            let expected = before.position + Vector3::new(0.6 / fps, 0.0, 0.0);
+            assert!((o.position - expected).norm() < 0.01, "object {k} at {:?}, expected {expected:?}", o.position);
+        }
+        let again = stage.update(7.0 / fps, fps, 0.0, &body(7.0 / fps), None);
+        for (k, (o, before)) in again.iter().zip(&last).enumerate() {
+            assert_eq!(o.state, State::Tracked, "object {k}: {o:?}");
+            let expected = before.position + Vector3::new(2.0 * 0.6 / fps, 0.0, 0.0);
+            assert!((o.position - expected).norm() < 0.02, "object {k} at {:?}, expected {expected:?}", o.position);
+        }
+    }
+
+    #[test]
     fn a_hand_whose_prediction_flew_off_is_found_again_before_it_is_lost() {
         let blob = |x: f32, y: f32, n: usize, vx: f32| {
             (0..n).map(move |i| ScenePoint {

@@ -33,13 +33,16 @@ struct Args {
 const LIVE_DETECT_INTERVAL_S: f64 = 1.0;
 
 /// What the stage remembers of a frame until its estimate is out.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 struct FrameMeta {
     sequence: u64,
     frame: u64,
     timestamp_s: f64,
     capture_unix_ns: u64,
     missing_views: u32,
+    /// Sets just before this one without a view of the reference camera: the engine cannot
+    /// estimate them, so they go out empty, first, and clustering coasts the tracks there.
+    coast_before: Vec<FrameMeta>,
 }
 
 fn main() {
@@ -85,6 +88,7 @@ fn run(args: Args) -> Result<()> {
     let mut connected = false;
     let mut last_sequence: Option<u64> = None;
     let mut dropped = 0u64;
+    let mut coast_before: Vec<FrameMeta> = Vec::new();
     ipc::serve(&frames, Duration::from_millis(100), |sample| -> Result<Next> {
         let header = *sample.user_header();
         if let Err(e) = header.validate(sample.payload().len()) {
@@ -107,6 +111,9 @@ fn run(args: Args) -> Result<()> {
             connected = true;
         }
         let mut publish = |meta: FrameMeta, engine: &SceneFlowEngine, face: Option<FaceCue>| {
+            for coasted in &meta.coast_before {
+                send_no_particles(&particles, coasted, fps, rig_header.rig_version, reference as u32)?;
+            }
             send_particles(&particles, &meta, engine, face, fps, rig_header.rig_version, reference as u32)
         };
         if let Some(last) = last_sequence {
@@ -121,6 +128,9 @@ fn run(args: Args) -> Result<()> {
         }
         if header.is_end_of_stream() {
             stream.finish(&mut publish).context("end of stream")?;
+            for coasted in coast_before.drain(..) {
+                send_no_particles(&particles, &coasted, fps, rig_header.rig_version, reference as u32)?;
+            }
             send_end_of_stream(&particles, header.sequence)?;
             tracing::info!("end of stream after frame set {}; {dropped} frame set(s) dropped", header.sequence);
             last_sequence = None;
@@ -138,15 +148,21 @@ fn run(args: Args) -> Result<()> {
             timestamp_s: header.timestamp_s,
             capture_unix_ns: header.capture_unix_ns,
             missing_views: header.missing_views,
+            coast_before: Vec::new(),
         };
         if !header.has_view(reference) {
+            // A replayed webcam that dropped its frame: the rays start in the reference
+            // view, so the engine spans the set and clustering coasts the tracks there.
             tracing::error!(
-                "skipping frame set {}: the reference camera `{}` has no view in it",
+                "frame set {}: the reference camera `{}` has no view in it; its trajectories are the tracks' \
+                 predictions",
                 header.sequence,
                 rig.cameras[reference].name
             );
+            coast_before.push(meta);
             return Ok(Next::Continue);
         }
+        let meta = FrameMeta { coast_before: std::mem::take(&mut coast_before), ..meta };
         let pushed =
             stream.push_partial_at(meta, sample.payload(), header.missing_views, header.sequence, &mut publish);
         drop(sample);
@@ -191,6 +207,34 @@ fn send_particles(
         face_age_frames: face.map_or(0, |f| f.age_frames),
     };
     sample.send().context("sending particles")?;
+    out.notify()?;
+    Ok(())
+}
+
+/// Sends a set without particles for a frame set the engine could not estimate (no view of
+/// the reference camera): clustering coasts every track on its prediction there.
+fn send_no_particles(
+    out: &Output<[ScenePoint], ParticleHeader>,
+    meta: &FrameMeta,
+    fps: f64,
+    rig_version: u32,
+    reference: u32,
+) -> Result<()> {
+    let mut sample = out.publisher.loan_slice(0).context("loaning an empty particle set")?;
+    *sample.user_header_mut() = ParticleHeader {
+        protocol_version: PROTOCOL_VERSION,
+        flags: 0,
+        sequence: meta.sequence,
+        frame: meta.frame,
+        timestamp_s: meta.timestamp_s,
+        capture_unix_ns: meta.capture_unix_ns,
+        frame_rate_hz: fps,
+        rig_version,
+        reference_camera: reference,
+        missing_views: meta.missing_views,
+        ..ParticleHeader::default()
+    };
+    sample.send().context("sending an empty particle set")?;
     out.notify()?;
     Ok(())
 }
