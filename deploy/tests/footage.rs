@@ -31,15 +31,33 @@ fn arg(path: &Path) -> &str {
     path.to_str().unwrap()
 }
 
+/// Renders 12 frames of `signer-3cam` into `dir/images` and returns that folder.
+fn rendered_images(dir: &Path) -> std::path::PathBuf {
+    let images = dir.join("images");
+    let output = handflow(&["render", "--preset", "signer-3cam", "--frames", "12", "--out", arg(&images)]);
+    assert!(output.status.success(), "{}", describe(&output));
+    images
+}
+
+/// Encodes the PNGs `frames/000000.png`.. at 30 frames/s into the lossless video `out`.
+fn encode_lossless(frames: &Path, out: &Path) {
+    let status = Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-y", "-framerate", "30", "-i"])
+        .arg(frames.join("%06d.png"))
+        .args(["-c:v", "ffv1", "-pix_fmt", "bgr0"])
+        .arg(out)
+        .status()
+        .unwrap();
+    assert!(status.success(), "encoding {}", out.display());
+}
+
 #[test]
 fn a_lossless_video_recording_imports_to_its_frames_and_tracks_as_its_images() {
     if !have_ffmpeg() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let images = dir.path().join("images");
-    let output = handflow(&["render", "--preset", "signer-3cam", "--frames", "12", "--out", arg(&images)]);
-    assert!(output.status.success(), "{}", describe(&output));
+    let images = rendered_images(dir.path());
     // The same recording as one lossless video per camera, with its rig and frame table.
     let videos = dir.path().join("videos");
     std::fs::create_dir_all(&videos).unwrap();
@@ -48,14 +66,7 @@ fn a_lossless_video_recording_imports_to_its_frames_and_tracks_as_its_images() {
     }
     let rig = handflow_protocol::Rig::load(images.join("rig.toml")).unwrap();
     for camera in &rig.cameras {
-        let status = Command::new("ffmpeg")
-            .args(["-loglevel", "error", "-y", "-framerate", "30", "-i"])
-            .arg(images.join(&camera.name).join("%06d.png"))
-            .args(["-c:v", "ffv1", "-pix_fmt", "bgr0"])
-            .arg(videos.join(format!("{}.mkv", camera.name)))
-            .status()
-            .unwrap();
-        assert!(status.success(), "encoding camera {}", camera.name);
+        encode_lossless(&images.join(&camera.name), &videos.join(format!("{}.mkv", camera.name)));
     }
 
     let imported = dir.path().join("imported");
@@ -89,9 +100,7 @@ fn frames_a_webcam_dropped_leave_their_sets_to_the_other_cameras() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let images = dir.path().join("images");
-    let output = handflow(&["render", "--preset", "signer-3cam", "--frames", "12", "--out", arg(&images)]);
-    assert!(output.status.success(), "{}", describe(&output));
+    let images = rendered_images(dir.path());
     // As caliscope records a session whose webcams each dropped a frame: camera k's video
     // lacks frame set 6 + 2k, and `timestamps.csv` has no row for it.
     let session = dir.path().join("session");
@@ -113,14 +122,7 @@ fn frames_a_webcam_dropped_leave_their_sets_to_the_other_cameras() {
             std::fs::copy(images.join(&camera.name).join(name), kept.join(format!("{position:06}.png"))).unwrap();
             timestamps.push_str(&format!("{frame},{k},{position},{}\n", times[frame as usize]));
         }
-        let status = Command::new("ffmpeg")
-            .args(["-loglevel", "error", "-y", "-framerate", "30", "-i"])
-            .arg(kept.join("%06d.png"))
-            .args(["-c:v", "ffv1", "-pix_fmt", "bgr0"])
-            .arg(session.join(format!("{}.mkv", camera.name)))
-            .status()
-            .unwrap();
-        assert!(status.success(), "encoding camera {}", camera.name);
+        encode_lossless(&kept, &session.join(format!("{}.mkv", camera.name)));
     }
     std::fs::write(session.join("timestamps.csv"), timestamps).unwrap();
 

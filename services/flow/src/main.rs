@@ -188,6 +188,23 @@ fn send_particles(
     let mut points = scene_points(engine);
     let mut sample = sample.write_from_fn(|_| points.next().unwrap_or_default());
     *sample.user_header_mut() = ParticleHeader {
+        ray_spread_var: handflow_flow::stream::ray_spread_variance(engine),
+        point_count: count as u64,
+        flow_seconds: engine.stats().seconds,
+        face_known: u32::from(face.is_some()),
+        face_centre_m: face.map_or([0.0; 3], |f| f.centre),
+        face_width_m: face.map_or(0.0, |f| f.width_m),
+        face_age_frames: face.map_or(0, |f| f.age_frames),
+        ..particle_header(meta, fps, rig_version, reference)
+    };
+    sample.send().context("sending particles")?;
+    out.notify()?;
+    Ok(())
+}
+
+/// The header of frame `meta`'s particle set, without points or a face.
+fn particle_header(meta: &FrameMeta, fps: f64, rig_version: u32, reference: u32) -> ParticleHeader {
+    ParticleHeader {
         protocol_version: PROTOCOL_VERSION,
         flags: 0,
         sequence: meta.sequence,
@@ -195,20 +212,11 @@ fn send_particles(
         timestamp_s: meta.timestamp_s,
         capture_unix_ns: meta.capture_unix_ns,
         frame_rate_hz: fps,
-        ray_spread_var: handflow_flow::stream::ray_spread_variance(engine),
-        point_count: count as u64,
-        flow_seconds: engine.stats().seconds,
         rig_version,
         reference_camera: reference,
-        face_known: u32::from(face.is_some()),
         missing_views: meta.missing_views,
-        face_centre_m: face.map_or([0.0; 3], |f| f.centre),
-        face_width_m: face.map_or(0.0, |f| f.width_m),
-        face_age_frames: face.map_or(0, |f| f.age_frames),
-    };
-    sample.send().context("sending particles")?;
-    out.notify()?;
-    Ok(())
+        ..ParticleHeader::default()
+    }
 }
 
 /// Sends a set without particles for a frame set the engine could not estimate (no view of
@@ -221,19 +229,7 @@ fn send_no_particles(
     reference: u32,
 ) -> Result<()> {
     let mut sample = out.publisher.loan_slice(0).context("loaning an empty particle set")?;
-    *sample.user_header_mut() = ParticleHeader {
-        protocol_version: PROTOCOL_VERSION,
-        flags: 0,
-        sequence: meta.sequence,
-        frame: meta.frame,
-        timestamp_s: meta.timestamp_s,
-        capture_unix_ns: meta.capture_unix_ns,
-        frame_rate_hz: fps,
-        rig_version,
-        reference_camera: reference,
-        missing_views: meta.missing_views,
-        ..ParticleHeader::default()
-    };
+    *sample.user_header_mut() = particle_header(meta, fps, rig_version, reference);
     sample.send().context("sending an empty particle set")?;
     out.notify()?;
     Ok(())
