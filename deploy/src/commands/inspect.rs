@@ -198,13 +198,12 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
         let own = faces.and_then(|f| f.detections.get(c)).map_or(0, Vec::len);
         let round =
             faces.map_or_else(|| "no detection round yet".to_string(), |f| format!("round of frame set {}", f.frame));
-        writeln!(
-            text,
-            "camera `{}`: skin {} of the image; face {} ({own} own detection(s), {round})",
-            cam.name,
-            share.map_or_else(|| "unknown".to_string(), |s| format!("{:.1} %", 100.0 * s)),
-            status.name()
-        )?;
+        let skin = match share {
+            _ if entry.missing_views & (1 << c) != 0 => "no frame in this set (the camera dropped it)".to_string(),
+            Some(s) => format!("skin {:.1} % of the image", 100.0 * s),
+            None => "skin unknown".to_string(),
+        };
+        writeln!(text, "camera `{}`: {skin}; face {} ({own} own detection(s), {round})", cam.name, status.name())?;
         let layers = [
             skin_picture(engine, c, cam, share),
             faces_picture(&photo, faces, c),
