@@ -6,8 +6,8 @@
 
 use handflow_e2e::render_preset;
 use handflow_flow::stream::{
-    detect_every_for_rate, model_lag_for_rate, scene_point_count, scene_points, stream_engine_config, FaceCue,
-    FlowStream, StreamError,
+    detect_every_for_rate, model_lag_for_rate, scene_point_count, scene_points, stream_engine_config, FlowStream,
+    SetOutcome, StreamError,
 };
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_ingest::Recording;
@@ -24,22 +24,35 @@ fn rendered_recording_and_engine(dir: &std::path::Path) -> (Recording, SceneFlow
     (rec, engine)
 }
 
-fn estimated_frames(configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>, first: u64) -> Vec<u64> {
+/// What a stream configured by `configure` hands out for the frame sets `first..FRAMES`, the
+/// sets in `passed` passed over ([`FlowStream::pass_over`]): each set's frame, and whether it
+/// was estimated.
+fn handed_out(
+    configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>,
+    first: u64,
+    passed: &[u64],
+) -> Vec<(u64, bool)> {
     let dir = tempfile::tempdir().unwrap();
     let (rec, engine) = rendered_recording_and_engine(dir.path());
     let mut stream = configure(FlowStream::new(engine));
     let mut buf = vec![0u8; rec.frame_set_len()];
     let mut seen = Vec::new();
-    let mut record = |k: u64, engine: &SceneFlowEngine, _face: Option<FaceCue>| {
-        // The points handed to clustering are the estimate's, with sensible values.
-        let points: Vec<_> = scene_points(engine).collect();
-        assert_eq!(points.len(), scene_point_count(engine));
-        assert!(!points.is_empty(), "frame {k} has particles on the skin");
-        assert!(points.iter().all(|p| p.weight >= 0.0 && (0.0..=1.0).contains(&p.skin)));
-        seen.push(k);
+    let mut record = |k: u64, outcome: SetOutcome<'_>| {
+        if let SetOutcome::Estimated { engine, .. } = outcome {
+            // The points handed to clustering are the estimate's, with sensible values.
+            let points: Vec<_> = scene_points(engine).collect();
+            assert_eq!(points.len(), scene_point_count(engine));
+            assert!(!points.is_empty(), "frame {k} has particles on the skin");
+            assert!(points.iter().all(|p| p.weight >= 0.0 && (0.0..=1.0).contains(&p.skin)));
+        }
+        seen.push((k, matches!(outcome, SetOutcome::Estimated { .. })));
         Ok::<(), StreamError>(())
     };
     for k in first..u64::from(FRAMES) {
+        if passed.contains(&k) {
+            stream.pass_over(k, &mut record).unwrap();
+            continue;
+        }
         rec.read_frame_into(k, false, &mut buf).unwrap();
         stream.push(k, &buf, &mut record).unwrap();
     }
@@ -47,9 +60,35 @@ fn estimated_frames(configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>, 
     seen
 }
 
+/// The frames a stream configured by `configure` estimates, from frame `first` on.
+fn estimated_frames(configure: impl FnOnce(FlowStream<u64>) -> FlowStream<u64>, first: u64) -> Vec<u64> {
+    let seen = handed_out(configure, first, &[]);
+    assert!(seen.iter().all(|&(_, estimated)| estimated), "nothing was passed over: {seen:?}");
+    seen.into_iter().map(|(k, _)| k).collect()
+}
+
 #[test]
 fn a_stream_from_its_start_estimates_every_frame_in_order() {
     assert_eq!(estimated_frames(|s| s, 0), (0..u64::from(FRAMES)).collect::<Vec<_>>());
+}
+
+#[test]
+fn sets_passed_over_are_handed_out_in_their_place_among_the_estimates() {
+    // Passed over: one while the warm-up holds the first frames, two in a row later, and the
+    // last set, after the last estimate's set.
+    let passed = [3, 12, 13, u64::from(FRAMES) - 1];
+    let seen = handed_out(|s| s, 0, &passed);
+    let expected: Vec<(u64, bool)> = (0..u64::from(FRAMES)).map(|k| (k, !passed.contains(&k))).collect();
+    assert_eq!(seen, expected);
+    // A live stream drops the stale sets of its warm-up backlog and the sets passed over
+    // before the first it keeps; a set passed over among the kept ones stays in its place.
+    let live = |s: FlowStream<u64>| s.with_backlog_limit(3).without_waiting_for_models();
+    // 21 sets held (frames 0..=22 less 5 and 21); kept: 19, 20 and 22.
+    let expected: Vec<(u64, bool)> = (19..u64::from(FRAMES)).map(|k| (k, k != 21)).collect();
+    assert_eq!(handed_out(live, 0, &[5, 21]), expected);
+    // 21 sets held (frames 0..=22 less 5 and 19); kept: 20, 21 and 22; 19 is stale.
+    let expected: Vec<(u64, bool)> = (20..u64::from(FRAMES)).map(|k| (k, true)).collect();
+    assert_eq!(handed_out(live, 0, &[5, 19]), expected);
 }
 
 #[test]
@@ -104,8 +143,10 @@ fn first_two_estimates(join: bool, first: u64) -> (u64, u64, bool) {
         }
         rec.read_frame_into(k, false, &mut buf).unwrap();
         stream
-            .push(k, &buf, |_, engine: &SceneFlowEngine, _| {
-                stats.push(engine.stats());
+            .push(k, &buf, |_, outcome: SetOutcome<'_>| {
+                if let SetOutcome::Estimated { engine, .. } = outcome {
+                    stats.push(engine.stats());
+                }
                 Ok::<(), StreamError>(())
             })
             .unwrap();
@@ -141,7 +182,7 @@ fn a_stream_joined_part_way_adapts_its_skin_models_to_its_first_frame_before_est
     for k in 10..u64::from(FRAMES) {
         rec.read_frame_into(k, false, &mut buf).unwrap();
         stream
-            .push(k, &buf, |_, _: &SceneFlowEngine, _| {
+            .push(k, &buf, |_, _: SetOutcome<'_>| {
                 estimated += 1;
                 Ok::<(), StreamError>(())
             })

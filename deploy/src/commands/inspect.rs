@@ -23,7 +23,7 @@ use handflow_cluster::em::EmFit;
 use handflow_cluster::stage::{labelled_clusters, ClusterStage, StartStatus};
 use handflow_cluster::tracks::OBJECTS;
 use handflow_flow::stream::{
-    ray_spread_variance, scene_points, skin_share, FaceCue, FaceRound, FaceStatus, StreamError,
+    ray_spread_variance, scene_points, skin_share, FaceCue, FaceRound, FaceStatus, SetOutcome, StreamError,
 };
 use handflow_flow::SceneFlowEngine;
 use handflow_ingest::Recording;
@@ -88,7 +88,7 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
         let (first, last) = (rec.frames().first().map_or(0, |f| f.frame), rec.frames().last().map_or(0, |f| f.frame));
         format!("frame {frame} is not in recording `{}` (frames {first} to {last} read)", dir.display())
     })?;
-    let (mut flow, mut stage, reference) = tracker_stages::<(usize, Vec<usize>)>(options, &rig, up.direction, fps)?;
+    let (mut flow, mut stage, reference) = tracker_stages::<usize>(options, &rig, up.direction, fps)?;
     anyhow::ensure!(
         index > 0 || flow.engine().config().estimates_first_frame(),
         "frame {frame} is the first frame read: it has no estimate with `estimate_first_frame=false` (the engine \
@@ -126,14 +126,12 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
             Ok(())
         }
     };
-    let mut on_estimate =
-        |(k, coast_before): (usize, Vec<usize>), engine: &SceneFlowEngine, face: Option<FaceCue>| -> Result<(), Halt> {
-            for coasted in coast_before {
-                cluster(coasted, None, None)?;
-            }
-            cluster(k, Some(engine), face)
-        };
-    let mut coast_before: Vec<usize> = Vec::new();
+    let mut on_estimate = |k: usize, outcome: SetOutcome<'_>| -> Result<(), Halt> {
+        match outcome {
+            SetOutcome::Estimated { engine, face } => cluster(k, Some(engine), face),
+            SetOutcome::PassedOver => cluster(k, None, None),
+        }
+    };
     let mut buf = vec![0u8; rec.frame_set_len()];
     for k in 0..rec.len() {
         let missing = match rec.read_frame_into(k as u64, false, &mut buf) {
@@ -150,13 +148,19 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
             let camera = &rig.cameras[reference].name;
             anyhow::ensure!(k != index, "frame {frame} has no view of the reference camera `{camera}`: no estimate");
             tracing::error!("frame set {k}: the reference camera `{camera}` has no frame in it");
-            coast_before.push(k);
-            continue;
+            match flow.pass_over(k, &mut on_estimate) {
+                Ok(()) => continue,
+                Err(Halt::Reached) => {
+                    reached = true;
+                    break;
+                }
+                Err(Halt::Failed(e)) => return Err(e.context(format!("frame {}", rec.frames()[k].frame))),
+            }
         }
         if k == index {
             inspected = Some(buf.clone());
         }
-        match flow.push_partial_at((k, std::mem::take(&mut coast_before)), &buf, missing, k as u64, &mut on_estimate) {
+        match flow.push_partial_at(k, &buf, missing, k as u64, &mut on_estimate) {
             Ok(()) => {}
             Err(Halt::Reached) => {
                 reached = true;

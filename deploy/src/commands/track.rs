@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use handflow_cluster::stage::{labelled_clusters, ClusterStage};
-use handflow_flow::stream::{ray_spread_variance, scene_points, FaceCue, FlowStream};
+use handflow_flow::stream::{ray_spread_variance, scene_points, FaceCue, FlowStream, SetOutcome};
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_ingest::{OpenOptions, Recording};
 use handflow_protocol::messages::{ClusterSet, ScenePoint, PROTOCOL_VERSION};
@@ -73,15 +73,12 @@ pub struct TrackSummary {
     pub reinitialisations: u64,
 }
 
-/// What the engine's estimate of a frame set carries to clustering: which set, how many
-/// sets were skipped before it (reported in its trajectory record), and the sets just
-/// before it that had no frame of the reference camera: the engine cannot estimate those,
-/// and clustering gets them empty, first, so their records are the tracks' predictions.
-#[derive(Clone, Debug)]
+/// What a frame set's estimate carries to clustering: which set, and how many sets were
+/// skipped before it (reported in its trajectory record).
+#[derive(Clone, Copy, Debug)]
 struct Estimate {
     index: usize,
     dropped: u64,
-    coast_before: Vec<usize>,
 }
 
 /// The flow stream and the cluster stage `track` and `inspect` run on a recording's `rig`
@@ -190,27 +187,23 @@ pub fn track_recording(
                 }
             }
         });
-        // A set without points: clustering coasts every track on its prediction.
-        let coast = |index: usize, dropped: u64| -> Result<()> {
-            let empty = Estimate { index, dropped, coast_before: Vec::new() };
-            points_tx.send((empty, 0.0, Vec::new(), None)).context("the clustering thread stopped")
-        };
-        let mut on_estimate = |estimate: Estimate, engine: &SceneFlowEngine, face: Option<FaceCue>| -> Result<()> {
-            for &index in &estimate.coast_before {
-                coast(index, estimate.dropped)?;
-            }
-            let mut points = spare_points_rx.try_recv().unwrap_or_default();
-            points.clear();
-            points.extend(scene_points(engine));
-            points_tx
-                .send((estimate, ray_spread_variance(engine), points, face))
-                .context("the clustering thread stopped")
+        let mut on_estimate = |estimate: Estimate, outcome: SetOutcome<'_>| -> Result<()> {
+            let sent = match outcome {
+                SetOutcome::Estimated { engine, face } => {
+                    let mut points = spare_points_rx.try_recv().unwrap_or_default();
+                    points.clear();
+                    points.extend(scene_points(engine));
+                    points_tx.send((estimate, ray_spread_variance(engine), points, face))
+                }
+                // A set without points: clustering coasts every track on its prediction.
+                SetOutcome::PassedOver => points_tx.send((estimate, 0.0, Vec::new(), None)),
+            };
+            sent.context("the clustering thread stopped")
         };
         let mut hand_on = |record: Result<TrajectoryRecord>, skipped: u64| -> Result<()> {
             written += 1;
             on_record(&record?, written, total.saturating_sub(skipped as usize))
         };
-        let mut coast_before: Vec<usize> = Vec::new();
         for k in 0..frames {
             let Ok(read) = frame_rx.recv() else {
                 return Err(fatal_rx.try_recv().unwrap_or_else(|_| anyhow::anyhow!("the decoding thread stopped")));
@@ -225,8 +218,8 @@ pub fn track_recording(
                          tracks' predictions",
                         rig.cameras[reference].name
                     );
-                    coast_before.push(k);
                     let _ = spare_tx.send(buf);
+                    flow.pass_over(Estimate { index: k, dropped: skipped }, &mut on_estimate)?;
                     continue;
                 }
                 Err(problem) => {
@@ -240,7 +233,7 @@ pub fn track_recording(
             // flow stage does on a replay's sequence numbers) rather than one frame interval.
             // A camera that dropped its frame of the set is left out of it, as live.
             let pushed = flow.push_partial_at(
-                Estimate { index: k, dropped: skipped, coast_before: std::mem::take(&mut coast_before) },
+                Estimate { index: k, dropped: skipped },
                 &buf,
                 missing,
                 k as u64,
@@ -254,9 +247,6 @@ pub fn track_recording(
         }
         let finished = flow.finish(&mut on_estimate);
         finished.context("end of the recording")?;
-        for index in coast_before.drain(..) {
-            coast(index, skipped)?;
-        }
         drop(points_tx);
         for record in record_rx {
             hand_on(record, skipped)?;

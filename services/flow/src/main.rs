@@ -9,6 +9,7 @@ use anyhow::{Context, Result};
 use clap::Parser;
 use handflow_flow::stream::{
     frames_in, live_stream_engine_config, scene_point_count, scene_points, stream_engine_config, FaceCue, FlowStream,
+    SetOutcome,
 };
 use handflow_flow::{SceneFlowEngine, Variant};
 use handflow_protocol::ipc::{self, Mode, Next, Output, ServiceNames};
@@ -40,9 +41,6 @@ struct FrameMeta {
     timestamp_s: f64,
     capture_unix_ns: u64,
     missing_views: u32,
-    /// Sets just before this one without a view of the reference camera: the engine cannot
-    /// estimate them, so they go out empty, first, and clustering coasts the tracks there.
-    coast_before: Vec<FrameMeta>,
 }
 
 fn main() {
@@ -88,7 +86,6 @@ fn run(args: Args) -> Result<()> {
     let mut connected = false;
     let mut last_sequence: Option<u64> = None;
     let mut dropped = 0u64;
-    let mut coast_before: Vec<FrameMeta> = Vec::new();
     ipc::serve(&frames, Duration::from_millis(100), |sample| -> Result<Next> {
         let header = *sample.user_header();
         if let Err(e) = header.validate(sample.payload().len()) {
@@ -110,11 +107,14 @@ fn run(args: Args) -> Result<()> {
             particles.connect_downstream(&node, args.mode);
             connected = true;
         }
-        let mut publish = |meta: FrameMeta, engine: &SceneFlowEngine, face: Option<FaceCue>| {
-            for coasted in &meta.coast_before {
-                send_no_particles(&particles, coasted, fps, rig_header.rig_version, reference as u32)?;
+        let mut publish = |meta: FrameMeta, outcome: SetOutcome<'_>| match outcome {
+            SetOutcome::Estimated { engine, face } => {
+                send_particles(&particles, &meta, engine, face, fps, rig_header.rig_version, reference as u32)
             }
-            send_particles(&particles, &meta, engine, face, fps, rig_header.rig_version, reference as u32)
+            // Sent empty, in order: clustering coasts the tracks there.
+            SetOutcome::PassedOver => {
+                send_no_particles(&particles, &meta, fps, rig_header.rig_version, reference as u32)
+            }
         };
         if let Some(last) = last_sequence {
             if header.sequence > last + 1 {
@@ -128,9 +128,6 @@ fn run(args: Args) -> Result<()> {
         }
         if header.is_end_of_stream() {
             stream.finish(&mut publish).context("end of stream")?;
-            for coasted in coast_before.drain(..) {
-                send_no_particles(&particles, &coasted, fps, rig_header.rig_version, reference as u32)?;
-            }
             send_end_of_stream(&particles, header.sequence)?;
             tracing::info!("end of stream after frame set {}; {dropped} frame set(s) dropped", header.sequence);
             last_sequence = None;
@@ -148,7 +145,6 @@ fn run(args: Args) -> Result<()> {
             timestamp_s: header.timestamp_s,
             capture_unix_ns: header.capture_unix_ns,
             missing_views: header.missing_views,
-            coast_before: Vec::new(),
         };
         if !header.has_view(reference) {
             // A replayed webcam that dropped its frame: the rays start in the reference
@@ -159,10 +155,9 @@ fn run(args: Args) -> Result<()> {
                 header.sequence,
                 rig.cameras[reference].name
             );
-            coast_before.push(meta);
+            stream.pass_over(meta, &mut publish).with_context(|| format!("frame set {}", header.sequence))?;
             return Ok(Next::Continue);
         }
-        let meta = FrameMeta { coast_before: std::mem::take(&mut coast_before), ..meta };
         let pushed =
             stream.push_partial_at(meta, sample.payload(), header.missing_views, header.sequence, &mut publish);
         drop(sample);

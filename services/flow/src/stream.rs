@@ -548,8 +548,28 @@ pub enum StreamError {
     },
 }
 
-/// A frame set held for the warm-up: its metadata, bytes, missing views and grid index.
-type HeldFrameSet<M> = (M, Vec<u8>, u32, Option<u64>);
+/// What the stream hands out for each frame set, in the order the sets came.
+#[derive(Clone, Copy)]
+pub enum SetOutcome<'a> {
+    /// The engine's estimate of the set, and the newest face the detection rounds applied
+    /// by then placed in 3D.
+    Estimated {
+        /// The engine, holding the estimate.
+        engine: &'a SceneFlowEngine,
+        /// The face cue of [`FlowStream::face_cue_of_last_estimate`].
+        face: Option<FaceCue>,
+    },
+    /// A set passed over ([`FlowStream::pass_over`]): the engine spanned it, no estimate.
+    PassedOver,
+}
+
+/// A frame set held for the warm-up: its metadata and, unless it was passed over, its
+/// bytes, missing views and grid index.
+type HeldFrameSet<M> = (M, Option<(Vec<u8>, u32, Option<u64>)>);
+
+/// A frame set awaiting its turn to be handed out: the push index of a set given to the
+/// engine (`None`: passed over), and the caller's metadata.
+type WaitingSet<M> = (Option<u64>, M);
 
 /// The scene-flow engine over one stream of frame sets, each tagged with `M` (the caller's
 /// frame metadata), handing every estimate out with the metadata of its frame.
@@ -563,8 +583,8 @@ pub struct FlowStream<M> {
     pushed: u64,
     /// Frames at which the next adapted models are applied.
     pending_models: VecDeque<u64>,
-    /// Push index and metadata of frames not yet estimated, oldest first.
-    waiting: VecDeque<(u64, M)>,
+    /// Sets not handed out yet, oldest first.
+    waiting: VecDeque<WaitingSet<M>>,
     /// Of the frames held for the warm-up, only the newest this many are estimated (live
     /// streams: the older ones are stale by then).
     backlog_limit: Option<usize>,
@@ -709,13 +729,14 @@ impl<M> FlowStream<M> {
     }
 
     /// Adds the next frame set (every view's RGB8 bytes in rig order) and hands each
-    /// estimate it completes to `on_estimate` with its frame's metadata. The handler's own
-    /// error type passes through; the stream's errors convert into it.
+    /// estimate it completes to `on_estimate` with its frame's metadata, and before it the
+    /// sets passed over since the previous estimate. The handler's own error type passes
+    /// through; the stream's errors convert into it.
     pub fn push<E: From<StreamError>>(
         &mut self,
         meta: M,
         frame_set: &[u8],
-        on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+        on_estimate: impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
         self.push_partial(meta, frame_set, 0, on_estimate)
     }
@@ -728,7 +749,7 @@ impl<M> FlowStream<M> {
         meta: M,
         frame_set: &[u8],
         missing: u32,
-        on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+        on_estimate: impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
         self.push_indexed(meta, frame_set, missing, None, on_estimate)
     }
@@ -743,7 +764,7 @@ impl<M> FlowStream<M> {
         frame_set: &[u8],
         missing: u32,
         index: u64,
-        on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+        on_estimate: impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
         self.push_indexed(meta, frame_set, missing, Some(index), on_estimate)
     }
@@ -754,15 +775,15 @@ impl<M> FlowStream<M> {
         frame_set: &[u8],
         missing: u32,
         index: Option<u64>,
-        mut on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+        mut on_estimate: impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
         if frame_set.len() != self.frame_set_len {
             return Err(StreamError::FrameSetLength { expected: self.frame_set_len, got: frame_set.len() }.into());
         }
         if let Some(held) = self.held.as_mut() {
             // Copies only the first frames of a stream, once.
-            held.push((meta, frame_set.to_vec(), missing, index));
-            if held.len() as u64 >= self.warm_up_frames {
+            held.push((meta, Some((frame_set.to_vec(), missing, index))));
+            if held.iter().filter(|(_, set)| set.is_some()).count() as u64 >= self.warm_up_frames {
                 self.release_held(&mut on_estimate)?;
             }
             return Ok(());
@@ -770,17 +791,44 @@ impl<M> FlowStream<M> {
         self.push_now(meta, frame_set, missing, index, &mut on_estimate)
     }
 
+    /// Passes over the next frame set: one the engine cannot estimate (it lacks the reference
+    /// camera's view, which every ray starts from). The engine spans it as a gap, and it is
+    /// handed out as [`SetOutcome::PassedOver`] in its place among the estimates, so the
+    /// caller's records stay in order (clustering coasts its tracks there).
+    pub fn pass_over<E: From<StreamError>>(
+        &mut self,
+        meta: M,
+        mut on_estimate: impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        if let Some(held) = self.held.as_mut() {
+            held.push((meta, None));
+        } else if self.waiting.is_empty() {
+            // Nothing before it awaits an estimate.
+            on_estimate(meta, SetOutcome::PassedOver)?;
+        } else {
+            self.waiting.push_back((None, meta));
+        }
+        Ok(())
+    }
+
     /// Ends the stream: estimates what is left (the last frame with the two-frame
     /// likelihood) and makes the stream ready for a new, unrelated one.
     pub fn finish<E: From<StreamError>>(
         &mut self,
-        mut on_estimate: impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+        mut on_estimate: impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
         if self.held.as_ref().is_some_and(|h| !h.is_empty()) {
             self.release_held(&mut on_estimate)?;
         }
         if self.engine.flush().is_some() {
             self.hand_out(&mut on_estimate)?;
+        }
+        // Sets passed over after the last estimate; sets the engine never estimated have
+        // nothing to hand out.
+        for (pushed, meta) in std::mem::take(&mut self.waiting) {
+            if pushed.is_none() {
+                on_estimate(meta, SetOutcome::PassedOver)?;
+            }
         }
         // Rounds whose models were not due yet: taken now, so the next stream does not get them.
         for _ in self.pending_models.drain(..) {
@@ -871,22 +919,34 @@ impl<M> FlowStream<M> {
     /// Runs the warm-up on the held frames, then pushes them.
     fn release_held<E: From<StreamError>>(
         &mut self,
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+        on_estimate: &mut impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
         let held = self.held.take().unwrap_or_default();
-        if held.is_empty() {
-            return Ok(());
-        }
-        let rounds = WARM_UP_ROUNDS.min(held.len());
+        let sets: Vec<(&[u8], u32)> = held
+            .iter()
+            .filter_map(|(_, set)| set.as_ref().map(|(bytes, missing, _)| (bytes.as_slice(), *missing)))
+            .collect();
+        let rounds = WARM_UP_ROUNDS.min(sets.len());
         for k in 0..rounds {
-            let index = (k as u64 * self.warm_up_spacing) as usize % held.len();
-            self.faces.send(index as u64, &held[index].1, held[index].2, true)?;
+            let index = (k as u64 * self.warm_up_spacing) as usize % sets.len();
+            self.faces.send(index as u64, sets[index].0, sets[index].1, true)?;
             let (models, round) = self.faces.recv()?;
             self.apply_models(&models, round)?;
         }
-        let skip = self.backlog_limit.map_or(0, |keep| held.len().saturating_sub(keep));
-        for (meta, frame_set, missing, index) in held.into_iter().skip(skip) {
-            self.push_now(meta, &frame_set, missing, index, on_estimate)?;
+        // A live stream skips the stale sets, and the sets passed over before the first it keeps.
+        let mut skip = self.backlog_limit.map_or(0, |keep| sets.len().saturating_sub(keep));
+        let stale = skip > 0;
+        let mut kept = false;
+        for (meta, set) in held {
+            match set {
+                Some(_) if skip > 0 => skip -= 1,
+                Some((frame_set, missing, index)) => {
+                    kept = true;
+                    self.push_now(meta, &frame_set, missing, index, on_estimate)?;
+                }
+                None if stale && !kept => {}
+                None => self.pass_over(meta, &mut *on_estimate)?,
+            }
         }
         Ok(())
     }
@@ -897,7 +957,7 @@ impl<M> FlowStream<M> {
         frame_set: &[u8],
         missing: u32,
         index: Option<u64>,
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+        on_estimate: &mut impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
         let k = self.pushed;
         let detect = k >= self.detect_from && (k - self.detect_from).is_multiple_of(self.detect_every);
@@ -913,7 +973,7 @@ impl<M> FlowStream<M> {
             }
         }
         let views = split_views(self.engine.cameras(), frame_set);
-        self.waiting.push_back((k, meta));
+        self.waiting.push_back((Some(k), meta));
         self.pushed += 1;
         let pushed = match index {
             Some(index) => self.engine.push_frame_indexed(&views, missing, index),
@@ -925,20 +985,24 @@ impl<M> FlowStream<M> {
         Ok(())
     }
 
-    /// Hands the engine's last estimate out with its frame's metadata; frames before it
-    /// never get one (the first frame of a forwards/backwards stream whose engine does not
-    /// estimate it).
+    /// Hands the engine's last estimate out with its frame's metadata, after the sets passed
+    /// over before it; frames before it never get one (the first frame of a
+    /// forwards/backwards stream whose engine does not estimate it).
     fn hand_out<E: From<StreamError>>(
         &mut self,
-        on_estimate: &mut impl FnMut(M, &SceneFlowEngine, Option<FaceCue>) -> Result<(), E>,
+        on_estimate: &mut impl FnMut(M, SetOutcome<'_>) -> Result<(), E>,
     ) -> Result<(), E> {
         let frame = self.engine.stats().frame;
         self.report_skin_shares();
         self.estimates += 1;
         let face = self.face_cue_of_last_estimate();
-        while let Some((k, meta)) = self.waiting.pop_front() {
-            if k == frame {
-                return on_estimate(meta, &self.engine, face);
+        while let Some((pushed, meta)) = self.waiting.pop_front() {
+            match pushed {
+                None => on_estimate(meta, SetOutcome::PassedOver)?,
+                Some(k) if k == frame => {
+                    return on_estimate(meta, SetOutcome::Estimated { engine: &self.engine, face })
+                }
+                Some(_) => {}
             }
         }
         Ok(())
