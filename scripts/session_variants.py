@@ -21,6 +21,11 @@ Each variant changes one thing a user's session may differ in:
   dropped-frames every camera drops one frame in DROP_EVERY at its own instants (a webcam
                  that cannot keep up), its video without them, `timestamps.csv` as caliscope
                  writes it: no row for a camera's dropped frame
+  caliscope-older laid out as older caliscope versions write a project: the calibration in the
+                 project's `config.toml` (`[cam_N]` tables with a `port`, Rodrigues rotations,
+                 among the project's settings), the recording in `recordings/recording_1/`
+                 with videos `port_N.mp4` and `frame_time_history.csv`; the recording folder
+                 is the one scored
 
 Needs ffmpeg for the video variants and Python 3.11 (tomllib). The videos are re-encoded once
 into OUT and reused by later runs.
@@ -79,6 +84,41 @@ def write_rig(cameras, path):
             f"translation = {json.dumps(c['translation'])}",
             "",
         ]
+    path.write_text("\n".join(lines))
+
+
+def rodrigues(r):
+    """The Rodrigues vector (axis times angle) of a 3x3 rotation."""
+    angle = math.acos(max(-1.0, min(1.0, (r[0][0] + r[1][1] + r[2][2] - 1.0) / 2.0)))
+    if angle < 1e-12:
+        return [0.0, 0.0, 0.0]
+    axis = [r[2][1] - r[1][2], r[0][2] - r[2][0], r[1][0] - r[0][1]]
+    if math.pi - angle < 1e-6:
+        raise SystemExit("a rotation of half a turn: its axis is not written here")
+    return [a * angle / (2.0 * math.sin(angle)) for a in axis]
+
+
+def write_caliscope_config(cameras, path):
+    """An older caliscope project's `config.toml`: settings, `[cam_N]` tables, a charuco board."""
+    lines = [f"camera_count = {len(cameras)}", "fps_sync_stream_processing = 100", ""]
+    for c in cameras:
+        port = int(c["name"].split("_")[-1])
+        lines += [
+            f"[{c['name']}]",
+            f"port = {port}",
+            f"size = [{c['size'][0]}, {c['size'][1]}]",
+            "rotation_count = 0",
+            "error = 0.5",
+            f"matrix = {json.dumps(c['matrix'])}",
+            f"distortions = {json.dumps(c['distortions'])}",
+            f"translation = {json.dumps(c['translation'])}",
+            f"rotation = {json.dumps(rodrigues(c['rotation']))}",
+            "exposure = -7",
+            "grid_count = 30",
+            "ignore = false",
+            "",
+        ]
+    lines += ["[charuco]", "columns = 4", "rows = 5", 'dictionary = "DICT_4X4_50"', 'units = "inch"', ""]
     path.write_text("\n".join(lines))
 
 
@@ -193,6 +233,7 @@ def build(name, session, out, cameras, reference):
     calibration = "rig.toml"
     video_name = {n: n for n in names}  # the file stem each camera's video gets
     timestamps = True
+    timestamps_file = "timestamps.csv"
     ref = reference
     video = None  # (ffmpeg filter, crf) when the videos are re-encoded
     if name == "as-is":
@@ -232,6 +273,12 @@ def build(name, session, out, cameras, reference):
         rig, video = cameras, ("colortemperature=temperature=3500", 16)
     elif name == "dim":
         rig, video = cameras, ("eq=brightness=-0.08:contrast=0.7:gamma=0.8", 16)
+    elif name == "caliscope-older":
+        project, d = d, d / "recordings" / "recording_1"
+        d.mkdir(parents=True, exist_ok=True)
+        write_caliscope_config(cameras, project / "config.toml")
+        video_name = {n: n.replace("cam_", "port_") for n in names}
+        timestamps_file = "frame_time_history.csv"
     elif name == "dropped-frames":
         # Near-lossless re-encoding of the frames each camera kept.
         rig = cameras
@@ -253,8 +300,10 @@ def build(name, session, out, cameras, reference):
     if timestamps:
         with open(session / "timestamps.csv", newline="") as f:
             rows = list(csv.DictReader(f))
-        with open(d / "timestamps.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        # Older caliscope versions call the camera column `port`.
+        column = "port" if timestamps_file == "frame_time_history.csv" else "cam_id"
+        with open(d / timestamps_file, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=[column if k == "cam_id" else k for k in rows[0].keys()])
             w.writeheader()
             position = {}
             for r in sorted(rows, key=lambda r: (int(r["cam_id"]), int(r["sync_index"]))):
@@ -269,7 +318,7 @@ def build(name, session, out, cameras, reference):
                     p = position.get(k, int(r["frame_index"]))
                     position[k] = p + 1
                     r = dict(r, frame_index=str(p))
-                w.writerow(r)
+                w.writerow({column if k == "cam_id" else k: v for k, v in r.items()})
     (d / "reference.json").write_text(json.dumps(ref))
     return d
 
@@ -319,7 +368,7 @@ def main():
     frontal = most_frontal(cameras)
     names += [f"pair-{'-'.join(sorted([frontal, c['name']]))}" for c in cameras if c["name"] != frontal]
     names += ["sideways-cam_2", "sideways-cam_0"]
-    names += ["lossy", "warm-light", "dim", "dropped-frames"]
+    names += ["lossy", "warm-light", "dim", "dropped-frames", "caliscope-older"]
     if args.only:
         names = [n for n in names if n in args.only]
     objects = ("head", "left_hand", "right_hand")

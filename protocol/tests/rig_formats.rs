@@ -61,6 +61,28 @@ fn assert_same_projections(expected: &Rig, actual: &Rig, what: &str) {
 }
 
 #[test]
+fn an_older_caliscope_projects_config_projects_like_the_anipose_form() {
+    let (rig, format) = Rig::load_detected(fixture("caliscope_config.toml")).expect("caliscope config.toml");
+    assert_eq!(format, RigFormat::CaliscopeConfig);
+    assert_same_projections(&reference_rig(), &rig, "caliscope config.toml");
+    assert_eq!(rig.cameras[2].mount_quarter_turns, 1);
+    // The ignored camera and the one never calibrated are left out, each with a note.
+    assert_eq!(rig.notes.len(), 2, "{:?}", rig.notes);
+    assert!(rig.notes[0].contains("cam_3") && rig.notes[0].contains("ignore"), "{:?}", rig.notes);
+    assert!(rig.notes[1].contains("cam_4") && rig.notes[1].contains("not calibrated"), "{:?}", rig.notes);
+    // A camera whose lens was calibrated but not its pose is left out too; a wrong field of
+    // a calibrated one is an error naming its table and field.
+    let text = std::fs::read_to_string(fixture("caliscope_config.toml")).expect("the fixture");
+    let unposed = text.replace("translation = [0.0, 0.25, 2.0]\nrotation = [0.1, 0.0, 0.0]\n", "");
+    let (rig, _) = Rig::from_str_detect(&unposed, "config").expect("one camera unposed");
+    assert_eq!(rig.cameras.len(), 2);
+    assert!(rig.notes.iter().any(|n| n.contains("cam_1") && n.contains("not posed")), "{:?}", rig.notes);
+    let broken = text.replace("rotation = [0.1, 0.0, 0.0]", "rotation = [0.1, 0.0]");
+    let error = Rig::from_str_detect(&broken, "config").expect_err("a short rotation").to_string();
+    assert!(error.contains("cam_1") && error.contains("rotation"), "{error}");
+}
+
+#[test]
 fn caliscope_form_projects_like_the_anipose_form() {
     let (rig, format) = Rig::load_detected(fixture("camera_array.toml")).expect("caliscope rig");
     assert_eq!(format, RigFormat::Caliscope);

@@ -10,6 +10,8 @@ pub enum RigFormat {
     AniposeToml,
     /// caliscope's `camera_array.toml`: `[cameras.N]` tables.
     Caliscope,
+    /// The project `config.toml` of older caliscope versions: `[cam_N]` tables with a `port`.
+    CaliscopeConfig,
     /// OpenCV FileStorage YAML (`%YAML:1.0`, `!!opencv-matrix`).
     OpenCvYaml,
     /// OpenCV FileStorage XML (`<opencv_storage>`, `type_id="opencv-matrix"`).
@@ -22,6 +24,7 @@ impl RigFormat {
         match self {
             RigFormat::AniposeToml => "anipose/Pose2Sim TOML",
             RigFormat::Caliscope => "caliscope camera_array.toml",
+            RigFormat::CaliscopeConfig => "caliscope config.toml (older versions)",
             RigFormat::OpenCvYaml => "OpenCV FileStorage YAML",
             RigFormat::OpenCvXml => "OpenCV FileStorage XML",
         }
@@ -34,8 +37,8 @@ impl RigFormat {
 
     /// The format of `text` from its first lines: OpenCV YAML starts with a `%YAML`
     /// directive (or uses `!!opencv-matrix` tags), OpenCV XML with `<?xml` or
-    /// `<opencv_storage>`; anything else is TOML, whose layout (anipose or caliscope) is
-    /// told apart when it is parsed, so this says [`RigFormat::AniposeToml`] for both.
+    /// `<opencv_storage>`; anything else is TOML, whose layout (anipose or caliscope's) is
+    /// told apart when it is parsed, so this says [`RigFormat::AniposeToml`] for all.
     pub fn sniff(text: &str) -> RigFormat {
         let start = text.trim_start_matches('\u{feff}').trim_start();
         if start.starts_with("%YAML") || text.contains("!!opencv-matrix") {

@@ -1,7 +1,8 @@
 //! Rig calibration: cameras, their projection model and the rig file formats.
 //!
 //! [`Rig::load`] reads anipose / Pose2Sim TOML (below, ours), caliscope's
-//! `camera_array.toml` and OpenCV FileStorage YAML and XML, recognised from the content
+//! `camera_array.toml` (and the `config.toml` of its older versions) and OpenCV FileStorage
+//! YAML and XML, recognised from the content
 //! ([`RigFormat`]); [`Rig::find_in_dir`] picks a folder's calibration. [`Rig::world_up`]
 //! says which way is up and why ([`UpSource`]).
 //!
@@ -64,6 +65,8 @@ use std::path::{Path, PathBuf};
 pub const RIG_FILE: &str = "rig.toml";
 /// caliscope's calibration file name.
 pub const CALISCOPE_FILE: &str = "camera_array.toml";
+/// Where older caliscope versions keep a project's calibration, among its other settings.
+pub const CALISCOPE_CONFIG_FILE: &str = "config.toml";
 /// File extensions (lower case) [`Rig::find_in_dir`] considers calibration files.
 const CALIBRATION_EXTENSIONS: [&str; 4] = ["toml", "yml", "yaml", "xml"];
 
@@ -113,14 +116,15 @@ impl Rig {
     }
 
     /// Parses calibration text in any format [`Rig::load`] reads, recognised from the
-    /// content ([`RigFormat::sniff`], then caliscope's `[cameras.N]` layout told from
-    /// anipose's). An OpenCV file of one camera without a `name` entry names it
+    /// content ([`RigFormat::sniff`], then caliscope's layouts told from anipose's). An OpenCV file of one camera without a `name` entry names it
     /// `file_stem`.
     pub fn from_str_detect(text: &str, file_stem: &str) -> Result<(Rig, RigFormat), RigError> {
         match RigFormat::sniff(text) {
             RigFormat::OpenCvYaml => opencv::parse_yaml_rig(text, file_stem).map(|rig| (rig, RigFormat::OpenCvYaml)),
             RigFormat::OpenCvXml => opencv::parse_xml_rig(text, file_stem).map(|rig| (rig, RigFormat::OpenCvXml)),
-            RigFormat::AniposeToml | RigFormat::Caliscope => toml_format::parse_detect(text),
+            RigFormat::AniposeToml | RigFormat::Caliscope | RigFormat::CaliscopeConfig => {
+                toml_format::parse_detect(text)
+            }
         }
     }
 

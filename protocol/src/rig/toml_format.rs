@@ -47,12 +47,15 @@ pub(crate) fn parse(text: &str) -> Result<Rig, RigError> {
     parse_detect(text).map(|(rig, _)| rig)
 }
 
-/// Parses a TOML rig file in either layout: caliscope's (a `cameras` table of camera
-/// tables, see [`super::caliscope`]) or anipose's.
+/// Parses a TOML rig file in any of its layouts: caliscope's (a `cameras` table of camera
+/// tables, or an older project's `config.toml`, see [`super::caliscope`]) or anipose's.
 pub(crate) fn parse_detect(text: &str) -> Result<(Rig, RigFormat), RigError> {
     let root: OrderedRoot = toml::from_str(text).map_err(|e| syntax_error(text, &e))?;
     if super::caliscope::is_caliscope(&root) {
         return super::caliscope::parse(root).map(|rig| (rig, RigFormat::Caliscope));
+    }
+    if super::caliscope::is_caliscope_config(&root) {
+        return super::caliscope::parse_config(root).map(|rig| (rig, RigFormat::CaliscopeConfig));
     }
     parse_anipose(root).map(|rig| (rig, RigFormat::AniposeToml))
 }

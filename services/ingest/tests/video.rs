@@ -404,6 +404,27 @@ fn sessions_laid_out_as_pose2sim_and_caliscope_ship_them_open_as_they_are() {
     assert_eq!(rec.len(), FRAMES as usize);
     let spread = rec.capture_spread().unwrap();
     assert!((spread.max_s - 0.01).abs() < 1e-9, "{spread:?}");
+
+    // Older caliscope: the cameras in the project's config.toml (`[cam_N]` with a `port`,
+    // among the project's settings), videos named by port.
+    let old_config = calibration.replace("name = \"cam_0\"", "port = 0").replace("name = \"cam_1\"", "port = 1");
+    let old_config = format!("camera_count = 2\n{old_config}\n[charuco]\ncolumns = 4\nrows = 5\n");
+    std::fs::remove_file(session.path().join("camera_array.toml")).unwrap();
+    for c in 0..2 {
+        std::fs::rename(recording.join(format!("cam_{c}.mp4")), recording.join(format!("port_{c}.mp4"))).unwrap();
+    }
+    // A `config.toml` that is not caliscope's is not taken for a calibration.
+    std::fs::write(session.path().join("config.toml"), "[project]\nframe_rate = 10\n").unwrap();
+    let error = Recording::open(&recording).expect_err("no calibration").to_string();
+    assert!(error.contains("calibration"), "{error}");
+    std::fs::write(session.path().join("config.toml"), old_config).unwrap();
+    let rec = Recording::open(&recording).unwrap_or_else(|e| panic!("{e}"));
+    assert!(rec.calibration_paths()[0].ends_with("config.toml"));
+    let names: Vec<&str> = rec.rig().cameras.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, ["cam_0", "cam_1"]);
+    assert_eq!(rec.len(), FRAMES as usize);
+    rec.read_frame_into(1, false, &mut buf).unwrap();
+    assert!(rec.views(&buf)[1] == pixels(1, 1).as_raw().as_slice(), "port_1.mp4 is camera cam_1");
 }
 
 #[test]

@@ -29,7 +29,8 @@
 //! Where the tools people use put things is looked for too: Pose2Sim's `videos/` and
 //! `calibration/` folders of a session, caliscope's older `frame_time_history.csv` (cameras
 //! as `port`, sets grouped by capture time when it has no `sync_index`), and a caliscope
-//! `camera_array.toml` up to two folders above a recording (`recordings/<name>/`).
+//! `camera_array.toml` (or an older version's `config.toml`) up to two folders above a
+//! recording (`recordings/<name>/`).
 //!
 //! The calibration is the folder's `rig.toml` or `camera_array.toml`, else its
 //! `calibration/` folder's, else its only calibration file (see
@@ -44,7 +45,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-use handflow_protocol::{Camera, Rig, RigError};
+use handflow_protocol::{Camera, Rig, RigError, RigFormat};
 use rayon::prelude::*;
 
 use crate::{camera_match, decode_rgb8_into, IngestError};
@@ -668,8 +669,9 @@ fn is_video(path: &Path) -> bool {
 /// A recording's calibration, where the tools people use leave it: the folder's `rig.toml`
 /// or `camera_array.toml`; else its `calibration/` folder's (Pose2Sim); else the folder's
 /// only calibration file ([`Rig::find_in_dir`]); else a `rig.toml` or `camera_array.toml`
-/// up to two folders above (caliscope keeps recordings in `recordings/<name>/` below the
-/// session's calibration).
+/// up to two folders above, or an older caliscope project's `config.toml` that holds its
+/// cameras (caliscope keeps recordings in `recordings/<name>/` below the session's
+/// calibration).
 fn find_calibration(dir: &Path) -> Result<Vec<PathBuf>, RigError> {
     for name in [RIG_FILE, handflow_protocol::rig::CALISCOPE_FILE] {
         if dir.join(name).is_file() {
@@ -689,6 +691,14 @@ fn find_calibration(dir: &Path) -> Result<Vec<PathBuf>, RigError> {
                 if ancestor.join(name).is_file() {
                     return Ok(vec![ancestor.join(name)]);
                 }
+            }
+            // An older caliscope project's settings, taken only when they hold its cameras
+            // (`config.toml` is a common name).
+            let config = ancestor.join(handflow_protocol::rig::CALISCOPE_CONFIG_FILE);
+            if config.is_file()
+                && Rig::load_detected(&config).is_ok_and(|(_, format)| format == RigFormat::CaliscopeConfig)
+            {
+                return Ok(vec![config]);
             }
         }
     }
