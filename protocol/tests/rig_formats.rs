@@ -77,6 +77,17 @@ fn an_older_caliscope_projects_config_projects_like_the_anipose_form() {
     let (rig, _) = Rig::from_str_detect(&unposed, "config").expect("one camera unposed");
     assert_eq!(rig.cameras.len(), 2);
     assert!(rig.notes.iter().any(|n| n.contains("cam_1") && n.contains("not posed")), "{:?}", rig.notes);
+    // caliscope's camera_array.toml leaves such fields out the same way.
+    let array = std::fs::read_to_string(fixture("camera_array.toml")).expect("the fixture");
+    let unposed = array.replace("translation = [0.0, 0.25, 2.0]\n", "").replacen(
+        "rotation = [[1.0, 0.0, 0.0], [0.0, 0.9950041652780258, -0.09983341664682815], [0.0, 0.09983341664682815, \
+         0.9950041652780258]]\n",
+        "",
+        1,
+    );
+    let (rig, _) = Rig::from_str_detect(&unposed, "camera_array").expect("one camera unposed");
+    assert_eq!(rig.cameras.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["cam_0", "cam_2"]);
+    assert!(rig.notes.iter().any(|n| n.contains("cam_1") && n.contains("not posed")), "{:?}", rig.notes);
     let broken = text.replace("rotation = [0.1, 0.0, 0.0]", "rotation = [0.1, 0.0]");
     let error = Rig::from_str_detect(&broken, "config").expect_err("a short rotation").to_string();
     assert!(error.contains("cam_1") && error.contains("rotation"), "{error}");

@@ -11,9 +11,9 @@
 //! of the raw frames, so it is kept as [`super::Camera::mount_quarter_turns`] and
 //! projection ignores it. caliscope's bookkeeping (`cam_id`, `port`, `error`, `exposure`,
 //! `grid_count`, `verified_resolutions`) is ignored; an `ignore = true` camera is left out
-//! with a note, and so is a camera of an older `config.toml` that caliscope has not
-//! calibrated yet (no `matrix`, or no `rotation` and `translation`: caliscope writes no
-//! field it has no value for; the project lists every camera connected). Camera `N`
+//! with a note, and so is a camera caliscope has not calibrated yet (no `matrix` and
+//! `distortions`) or not posed yet (no `rotation` and `translation`): caliscope writes no
+//! field it has no value for, and a project lists every camera connected. Camera `N`
 //! (or port `N`) is named `cam_N`, and cameras are in the order of `N`.
 
 use toml::Value;
@@ -64,7 +64,7 @@ pub(super) fn parse(root: OrderedRoot) -> Result<Rig, RigError> {
     let Some(Value::Table(cameras)) = root.0.into_iter().find(|(key, _)| key == CAMERAS).map(|(_, v)| v) else {
         return Err(RigError::NoCameras);
     };
-    rig_of(cameras.into_iter().map(|(id, value)| (format!("{CAMERAS}.{id}"), id, value)).collect(), false)
+    rig_of(cameras.into_iter().map(|(id, value)| (format!("{CAMERAS}.{id}"), id, value)).collect())
 }
 
 /// The rig of an older caliscope project's `config.toml` (see the module documentation).
@@ -74,13 +74,11 @@ pub(super) fn parse_config(root: OrderedRoot) -> Result<Rig, RigError> {
         .into_iter()
         .filter_map(|(key, value)| config_camera_id(&key, &value).map(|n| (key, n.to_string(), value)))
         .collect();
-    rig_of(entries, true)
+    rig_of(entries)
 }
 
-/// The rig of camera tables `(table key, N, table)`, in the order of `N`; cameras not
-/// calibrated yet are left out when `uncalibrated_left_out` (a project's settings list every
-/// camera connected), else they are an error (a calibration's own file).
-fn rig_of(mut entries: Vec<(String, String, Value)>, uncalibrated_left_out: bool) -> Result<Rig, RigError> {
+/// The rig of camera tables `(table key, N, table)`, in the order of `N`.
+fn rig_of(mut entries: Vec<(String, String, Value)>) -> Result<Rig, RigError> {
     // By N as a number: the table's own order is by key text ("10" before "2").
     entries.sort_by(|(_, a, _), (_, b, _)| match (a.parse::<u64>(), b.parse::<u64>()) {
         (Ok(x), Ok(y)) => x.cmp(&y),
@@ -101,11 +99,12 @@ fn rig_of(mut entries: Vec<(String, String, Value)>, uncalibrated_left_out: bool
                 return Err(context.error("ignore", format!("expected a boolean, found {}", describe(other))))
             }
         };
+        // caliscope writes no field it has no value for: a camera without its lens's fields
+        // is not calibrated yet, one without both pose fields not posed yet. A table missing
+        // only some of either is damaged, and its first missing field is the error.
         let left_out = left_out.or_else(|| {
-            if !uncalibrated_left_out {
-                None
-            } else if !table.contains_key("matrix") {
-                Some("has no `matrix`: not calibrated yet")
+            if !table.contains_key("matrix") && !table.contains_key("distortions") {
+                Some("has no `matrix` or `distortions`: not calibrated yet")
             } else if !table.contains_key("rotation") && !table.contains_key("translation") {
                 Some("has no `rotation` or `translation`: not posed yet (only its lens is calibrated)")
             } else {
