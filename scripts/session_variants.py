@@ -26,6 +26,10 @@ Each variant changes one thing a user's session may differ in:
                  among the project's settings), the recording in `recordings/recording_1/`
                  with videos `port_N.mp4` and `frame_time_history.csv`; the recording folder
                  is the one scored
+  fisheye        every camera as a wide lens calibrated with OpenCV's fisheye model: each
+                 video resampled from its pinhole calibration into a fisheye image of the same
+                 focal length (coefficients FISHEYE; the wider field's rim is black), the
+                 rig's `fisheye = true` (needs numpy)
 
 Needs ffmpeg for the video variants and Python 3.11 (tomllib). The videos are re-encoded once
 into OUT and reused by later runs.
@@ -82,8 +86,10 @@ def write_rig(cameras, path):
             f"distortions = {json.dumps(c['distortions'])}",
             f"rotation = {json.dumps(c['rotation'])}",
             f"translation = {json.dumps(c['translation'])}",
-            "",
         ]
+        if c.get("fisheye"):
+            lines.append("fisheye = true")
+        lines.append("")
     path.write_text("\n".join(lines))
 
 
@@ -214,6 +220,75 @@ def encode(src, dst, video_filter, crf):
     tmp.rename(dst)
 
 
+# The fisheye variant's lens: OpenCV fisheye k1 k2 k3 k4 (a mildly barrel wide lens).
+FISHEYE = [0.05, -0.02, 0.004, 0.0]
+
+
+def fisheye_maps(camera, lens):
+    """Per pixel of the fisheye image (the camera's K, `lens`), where the pinhole view shows
+    the same ray: source coordinates x, y (float arrays)."""
+    import numpy as np
+
+    (w, h), k, (k1, k2, p1, p2, k3) = camera["size"], camera["matrix"], camera["distortions"]
+    fx, s, cx, fy, cy = k[0][0], k[0][1], k[0][2], k[1][1], k[1][2]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    yd = (v - cy) / fy
+    xd = (u - cx - s * yd) / fx
+    theta_d = np.hypot(xd, yd)
+    theta = np.minimum(theta_d, 1.5)
+    c1, c2, c3, c4 = lens
+    for _ in range(30):
+        t2 = theta * theta
+        f = theta * (1 + t2 * (c1 + t2 * (c2 + t2 * (c3 + t2 * c4)))) - theta_d
+        df = 1 + t2 * (3 * c1 + t2 * (5 * c2 + t2 * (7 * c3 + t2 * 9 * c4)))
+        theta = np.clip(theta - f / df, 0.0, 1.5)
+    scale = np.where(theta_d > 1e-12, np.tan(theta) / np.maximum(theta_d, 1e-12), 1.0)
+    x, y = xd * scale, yd * scale
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xs = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    ys = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return fx * xs + s * ys + cx, fy * ys + cy
+
+
+def fisheye_video(src, dst, camera, lens):
+    """`src` resampled (bilinear) into the fisheye view of `camera` with `lens`, H.264 CRF 12."""
+    import numpy as np
+
+    if dst.exists():
+        return
+    w, h = camera["size"]
+    mx, my = fisheye_maps(camera, lens)
+    x0, y0 = np.floor(mx).astype(np.int64), np.floor(my).astype(np.int64)
+    fx, fy = (mx - x0)[..., None], (my - y0)[..., None]
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 + 1 < w) & (y0 + 1 < h)
+    x0, y0 = np.clip(x0, 0, w - 2), np.clip(y0, 0, h - 2)
+    tmp = dst.with_suffix(".part.mp4")
+    decode = subprocess.Popen(
+        ["ffmpeg", "-loglevel", "error", "-i", str(src), "-f", "rawvideo", "-pix_fmt", "rgb24", "-"],
+        stdout=subprocess.PIPE,
+    )
+    encode = subprocess.Popen(
+        ["ffmpeg", "-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w}x{h}",
+         "-r", "6", "-i", "-", "-c:v", "libx264", "-crf", "12", "-pix_fmt", "yuv420p", str(tmp)],
+        stdin=subprocess.PIPE,
+    )
+    size = w * h * 3
+    while True:
+        raw = decode.stdout.read(size)
+        if len(raw) < size:
+            break
+        img = np.frombuffer(raw, np.uint8).reshape(h, w, 3).astype(np.float32)
+        top = img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx
+        bottom = img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx
+        out = (top * (1 - fy) + bottom * fy) * inside[..., None]
+        encode.stdin.write(np.clip(out + 0.5, 0, 255).astype(np.uint8).tobytes())
+    encode.stdin.close()
+    if decode.wait() != 0 or encode.wait() != 0:
+        raise SystemExit(f"fisheye: re-encoding {src} failed")
+    tmp.rename(dst)
+
+
 # The dropped-frames variant: camera k drops its frames n with (n + dropped_offset(k)) %
 # DROP_EVERY == 0, 5 % of each camera's frames, at instants no two cameras share.
 DROP_EVERY = 20
@@ -279,6 +354,10 @@ def build(name, session, out, cameras, reference):
         write_caliscope_config(cameras, project / "config.toml")
         video_name = {n: n.replace("cam_", "port_") for n in names}
         timestamps_file = "frame_time_history.csv"
+    elif name == "fisheye":
+        rig = [dict(c, distortions=FISHEYE, fisheye=True) for c in cameras]
+        for c in cameras:
+            fisheye_video(session / f"{c['name']}.mp4", d / f"{c['name']}.mp4", c, FISHEYE)
     elif name == "dropped-frames":
         # Near-lossless re-encoding of the frames each camera kept.
         rig = cameras
@@ -368,7 +447,7 @@ def main():
     frontal = most_frontal(cameras)
     names += [f"pair-{'-'.join(sorted([frontal, c['name']]))}" for c in cameras if c["name"] != frontal]
     names += ["sideways-cam_2", "sideways-cam_0"]
-    names += ["lossy", "warm-light", "dim", "dropped-frames", "caliscope-older"]
+    names += ["lossy", "warm-light", "dim", "dropped-frames", "caliscope-older", "fisheye"]
     if args.only:
         names = [n for n in names if n in args.only]
     objects = ("head", "left_hand", "right_hand")

@@ -47,6 +47,29 @@ fn rig_show_describes_a_caliscope_file() {
 }
 
 #[test]
+fn rig_show_names_each_cameras_lens_model_and_an_older_caliscope_config() {
+    let file = fixture("caliscope_config.toml");
+    let text = stdout(&handflow(&["rig", "show", file.to_str().unwrap()]));
+    for needle in [
+        "format: caliscope config.toml (older versions)",
+        "cameras: 3",
+        "lens: pinhole, k1 k2 p1 p2 k3 = -0.11 0.031 0.0004 -0.0002 -0.005",
+        "`cam_4`",
+        "not calibrated yet",
+    ] {
+        assert!(text.contains(needle), "lacks {needle:?}:\n{text}");
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let wide = tmp.path().join("wide.toml");
+    let anipose = std::fs::read_to_string(fixture("anipose.toml")).unwrap();
+    let fisheye = anipose
+        .replace("distortions = [0.02, -0.01, 0.0, 0.0]", "distortions = [0.03, -0.01, 0.002, 0.0]\nfisheye = true");
+    std::fs::write(&wide, fisheye).unwrap();
+    let text = stdout(&handflow(&["rig", "show", wide.to_str().unwrap()]));
+    assert!(text.contains("lens: fisheye, k1 k2 k3 k4 = 0.03 -0.01 0.002 0"), "{text}");
+}
+
+#[test]
 fn rig_show_reports_a_bad_file_with_its_error() {
     let bad = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/bad/opencv_missing_rotation.yml");
     let output = handflow(&["rig", "show", bad.to_str().unwrap()]);

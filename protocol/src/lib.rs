@@ -39,7 +39,7 @@ pub fn read_text_capped(path: &std::path::Path) -> std::io::Result<String> {
     std::fs::read_to_string(path)
 }
 
-pub use rig::{Camera, Distortion, Ray, Rig, RigError, RigFormat, UpSource, WorldUp};
+pub use rig::{Camera, Distortion, Fisheye, Ray, Rig, RigError, RigFormat, UpSource, WorldUp};
 
 #[cfg(test)]
 mod tests {

@@ -2,7 +2,7 @@
 
 use std::f64::consts::FRAC_PI_2;
 
-use handflow_protocol::{Camera, Distortion, RigError};
+use handflow_protocol::{Camera, Distortion, Fisheye, RigError};
 use nalgebra::{Matrix3, Point2, Point3, Rotation3, Vector2, Vector3};
 use proptest::prelude::*;
 
@@ -46,6 +46,40 @@ fn hand_computed_projection_follows_opencv() {
     let ray = cam.back_project(&pixel);
     let distance = (p - cam.centre()).norm();
     assert!((ray.at(distance) - p).norm() < 1e-12);
+}
+
+#[test]
+fn the_fisheye_model_follows_opencv() {
+    // cv::fisheye::projectPoints: a = x/z, b = y/z, r² = a² + b², θ = atan(r),
+    // θd = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸), (x', y') = (θd / r) (a, b).
+    let lens = Fisheye { k1: 0.05, k2: -0.02, k3: 0.004, k4: -0.001 };
+    let (a, b) = (0.6, -0.8); // r = 1, θ = π/4
+    let theta = std::f64::consts::FRAC_PI_4;
+    let t2 = theta * theta;
+    let theta_d = theta * (1.0 + t2 * (0.05 + t2 * (-0.02 + t2 * (0.004 - t2 * 0.001))));
+    let distorted = lens.distort(Vector2::new(a, b));
+    assert!((distorted - Vector2::new(a, b) * theta_d).norm() < 1e-15, "{distorted}");
+    assert!((lens.undistort(distorted) - Vector2::new(a, b)).norm() < 1e-12);
+    // A pinhole's zero point stays put; the equidistant lens (all k zero) images θ at r = θ.
+    assert_eq!(lens.distort(Vector2::zeros()), Vector2::zeros());
+    let equidistant = Fisheye::default();
+    assert!((equidistant.distort(Vector2::new(1.0, 0.0)).x - theta).abs() < 1e-15);
+    // A camera with the model projects through it and validates its coefficients.
+    let k = Matrix3::new(500.0, 0.0, 640.0, 0.0, 500.0, 360.0, 0.0, 0.0, 1.0);
+    let cam = Camera::new("bad", 1280, 720, k, Distortion::default(), Rotation3::identity(), Vector3::zeros())
+        .and_then(|c| c.with_fisheye(lens))
+        .expect("a fisheye camera");
+    let pixel = cam.project(&Point3::new(0.6, -0.8, 1.0)).expect("in front");
+    assert!((pixel - Point2::new(640.0 + 500.0 * 0.6 * theta_d, 360.0 - 500.0 * 0.8 * theta_d)).norm() < 1e-9);
+    let bad = Fisheye { k4: f64::NAN, ..lens };
+    let (field, problem) = field_of(cam.clone().with_fisheye(bad));
+    assert_eq!(field, "distortions");
+    assert!(problem.contains("k4"), "{problem}");
+    let pinhole_distorted =
+        Camera::new("bad", 1280, 720, k, distortion(-0.1, 0.0, 0.0, 0.0, 0.0), Rotation3::identity(), Vector3::zeros())
+            .expect("valid");
+    let (field, _) = field_of(pinhole_distorted.with_fisheye(lens));
+    assert_eq!(field, "distortions");
 }
 
 #[test]
@@ -174,6 +208,11 @@ fn realistic_distortion() -> impl Strategy<Value = Distortion> {
     })
 }
 
+/// OpenCV fisheye coefficients of wide webcam and action-camera lenses.
+fn realistic_fisheye() -> impl Strategy<Value = Fisheye> {
+    (-0.1..0.1, -0.05..0.05, -0.01..0.01, -0.005..0.005).prop_map(|(k1, k2, k3, k4)| Fisheye { k1, k2, k3, k4 })
+}
+
 fn rotation() -> impl Strategy<Value = Rotation3<f64>> {
     (-3.2..3.2, -3.2..3.2, -3.2..3.2).prop_map(|(x, y, z)| Rotation3::new(Vector3::new(x, y, z)))
 }
@@ -229,6 +268,29 @@ proptest! {
         let normalised = Vector2::new(x, y);
         let back = d.undistort(d.distort(normalised));
         prop_assert!((back - normalised).norm() < 1e-12, "{normalised} -> {back}");
+    }
+
+    #[test]
+    fn fisheye_undistort_inverts_distort(lens in realistic_fisheye(), (x, y) in (-1.2..1.2, -1.2..1.2)) {
+        // Up to 60 degrees from the optical axis, where these lenses' images still grow with
+        // the angle.
+        let normalised = Vector2::new(x, y);
+        let back = lens.undistort(lens.distort(normalised));
+        prop_assert!((back - normalised).norm() < 1e-10 * (1.0 + normalised.norm_squared()), "{normalised} -> {back}");
+    }
+
+    #[test]
+    fn fisheye_cameras_back_project_to_their_pixel(
+        cam in realistic_camera(),
+        lens in realistic_fisheye(),
+        (fu, fv) in (0.0..1.0, 0.0..1.0),
+        depth in 0.1..100.0,
+    ) {
+        let cam = Camera { distortion: Distortion::default(), ..cam }.with_fisheye(lens).expect("valid");
+        let pixel = Point2::new(fu * f64::from(cam.width), fv * f64::from(cam.height));
+        let point = cam.back_project(&pixel).at(depth);
+        let projected = cam.project(&point).expect("in front of the camera");
+        prop_assert!((projected - pixel).norm() < 1e-6, "{pixel} -> {projected}");
     }
 
     #[test]

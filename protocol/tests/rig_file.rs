@@ -4,7 +4,7 @@ mod common;
 
 use std::f64::consts::PI;
 
-use handflow_protocol::{Camera, Distortion, Rig, RigError};
+use handflow_protocol::{Camera, Distortion, Fisheye, Rig, RigError};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use proptest::prelude::*;
 
@@ -133,6 +133,7 @@ fn assert_same_rig(a: &Rig, b: &Rig) {
         for (p, q) in x.distortion.as_array().iter().zip(y.distortion.as_array()) {
             assert!((p - q).abs() <= 1e-12, "{} distortion", x.name);
         }
+        assert_eq!(x.fisheye, y.fisheye, "{} fisheye lens", x.name);
         let rotation_error = (x.rotation.matrix() - y.rotation.matrix()).amax();
         assert!(rotation_error <= 1e-12, "{} rotation off by {rotation_error}", x.name);
         assert!(
@@ -175,6 +176,23 @@ fn save_then_load_round_trips() {
     for (a, b) in rig.cameras.iter().zip(&loaded.cameras) {
         assert_eq!((a.matrix, a.distortion, a.translation), (b.matrix, b.distortion, b.translation));
     }
+}
+
+#[test]
+fn a_fisheye_camera_is_written_and_read_as_anipose_writes_it() {
+    let mut rig = sample_rig();
+    let lens = Fisheye { k1: 0.031, k2: -0.0123, k3: 0.0021, k4: -0.0003 };
+    let fisheye = Camera { distortion: Distortion::default(), ..rig.cameras[2].clone() };
+    rig.cameras[2] = fisheye.with_fisheye(lens).expect("valid");
+    let text = rig.to_toml_string();
+    let table: toml::Table = toml::from_str(&text).expect("valid TOML");
+    let cam = table["cam_2"].as_table().expect("a table per camera");
+    assert_eq!(cam["fisheye"].as_bool(), Some(true));
+    assert_eq!(cam["distortions"].as_array().map(Vec::len), Some(4));
+    let loaded = Rig::from_toml_str(&text).expect("read back");
+    assert_same_rig(&rig, &loaded);
+    assert_eq!(loaded.cameras[2].fisheye, Some(lens));
+    assert_eq!(loaded.cameras[1].fisheye, None);
 }
 
 #[test]
@@ -271,7 +289,10 @@ const BAD_RIGS: &[(&str, &[&str])] = &[
         "rig_duplicate_name.toml",
         &["camera `cam_1` (name `left`)", "field `name`", "duplicate camera name `left`", "camera `cam_0`"],
     ),
-    ("rig_fisheye.toml", &["camera `cam_1` (name `right`)", "field `fisheye`", "not supported"]),
+    (
+        "rig_fisheye_five_coefficients.toml",
+        &["camera `cam_1` (name `right`)", "field `distortions`", "4 fisheye coefficients", "found 5"],
+    ),
     ("rig_no_cameras.toml", &["no cameras"]),
     ("rig_top_level_value.toml", &["top-level key `version`", "expected a camera table, found an integer"]),
     ("rig_syntax_error.toml", &["TOML syntax error at line 3"]),

@@ -109,6 +109,14 @@ fn write_description(rig: &Rig, source: &str, out: &mut String) -> std::fmt::Res
         writeln!(out, "    size: {}x{}", camera.width, camera.height)?;
         writeln!(out, "    focal length: fx {:.2} px, fy {:.2} px", k[(0, 0)], k[(1, 1)])?;
         writeln!(out, "    principal point: ({:.2}, {:.2}) px", k[(0, 2)], k[(1, 2)])?;
+        let coefficients = |values: &[f64]| values.iter().map(|v| format!("{v}")).collect::<Vec<_>>().join(" ");
+        match &camera.fisheye {
+            Some(lens) => writeln!(out, "    lens: fisheye, k1 k2 k3 k4 = {}", coefficients(&lens.as_array()))?,
+            None if camera.distortion.is_zero() => writeln!(out, "    lens: pinhole, no distortion")?,
+            None => {
+                writeln!(out, "    lens: pinhole, k1 k2 p1 p2 k3 = {}", coefficients(&camera.distortion.as_array()))?
+            }
+        }
         writeln!(out, "    centre: {} m", vector(&camera.centre().coords))?;
         writeln!(out, "    viewing direction: {}", vector(&camera.viewing_direction()))?;
         writeln!(out, "    mount quarter turns: {}", camera.mount_quarter_turns)?;

@@ -1,4 +1,5 @@
-//! One calibrated camera: OpenCV pinhole model with k1 k2 p1 p2 k3 distortion.
+//! One calibrated camera: OpenCV pinhole model with k1 k2 p1 p2 k3 distortion, or OpenCV's
+//! fisheye model (k1 k2 k3 k4 of the angle from the optical axis).
 
 use nalgebra::{Matrix2, Matrix3, Point2, Point3, Rotation3, Unit, Vector2, Vector3};
 
@@ -117,6 +118,69 @@ impl Distortion {
     }
 }
 
+/// OpenCV's fisheye lens model (`cv::fisheye`, anipose's and caliscope's `fisheye = true`):
+/// a normalised point at angle `θ = atan(r)` from the optical axis (`r² = x² + y²`) is
+/// imaged at radius `θd = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)`, in its own direction.
+/// Wide lenses whose field the pinhole polynomial cannot follow are calibrated so.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct Fisheye {
+    /// θ² term.
+    pub k1: f64,
+    /// θ⁴ term.
+    pub k2: f64,
+    /// θ⁶ term.
+    pub k3: f64,
+    /// θ⁸ term.
+    pub k4: f64,
+}
+
+/// Newton iterations allowed in [`Fisheye::undistort`] (a one-dimensional solve).
+const FISHEYE_UNDISTORT_MAX_ITERATIONS: usize = 30;
+
+impl Fisheye {
+    /// The coefficients in OpenCV order: `[k1, k2, k3, k4]`.
+    pub fn as_array(&self) -> [f64; 4] {
+        [self.k1, self.k2, self.k3, self.k4]
+    }
+
+    /// `θd / θ`, the polynomial of the model, at `θ²`.
+    fn stretch(&self, theta2: f64) -> f64 {
+        1.0 + theta2 * (self.k1 + theta2 * (self.k2 + theta2 * (self.k3 + theta2 * self.k4)))
+    }
+
+    /// Applies the model to a normalised point `(x/z, y/z)` (a point in front of the camera).
+    pub fn distort(&self, normalised: Vector2<f64>) -> Vector2<f64> {
+        let r = normalised.norm();
+        if r <= 1e-12 {
+            return normalised;
+        }
+        let theta = r.atan();
+        normalised * (theta * self.stretch(theta * theta) / r)
+    }
+
+    /// Inverts [`Self::distort`]: Newton's method on `θ` from `θd`, the distorted point's
+    /// radius, kept within the front half-space (`θ < π/2`); where the polynomial has no
+    /// preimage it returns the best angle found.
+    pub fn undistort(&self, distorted: Vector2<f64>) -> Vector2<f64> {
+        let theta_d = distorted.norm();
+        if theta_d <= 1e-12 || !theta_d.is_finite() {
+            return distorted;
+        }
+        let limit = std::f64::consts::FRAC_PI_2 - 1e-6;
+        let mut theta = theta_d.min(limit);
+        for _ in 0..FISHEYE_UNDISTORT_MAX_ITERATIONS {
+            let t2 = theta * theta;
+            let residual = theta * self.stretch(t2) - theta_d;
+            let slope = 1.0 + t2 * (3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4)));
+            if residual.abs() <= 1e-15 * (1.0 + theta_d) || slope <= 0.0 || !slope.is_finite() {
+                break;
+            }
+            theta = (theta - residual / slope).clamp(0.0, limit);
+        }
+        distorted * (theta.tan() / theta_d)
+    }
+}
+
 /// A half-line in the world frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Ray {
@@ -149,8 +213,11 @@ pub struct Camera {
     pub height: u32,
     /// Intrinsics `K`: `[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`.
     pub matrix: Matrix3<f64>,
-    /// Lens distortion (OpenCV k1 k2 p1 p2 k3).
+    /// Lens distortion (OpenCV k1 k2 p1 p2 k3); all zero for a fisheye lens.
     pub distortion: Distortion,
+    /// The fisheye lens model, when the camera was calibrated with it (then `distortion`
+    /// is unused); `None` for the pinhole model.
+    pub fisheye: Option<Fisheye>,
     /// World-to-camera rotation.
     pub rotation: Rotation3<f64>,
     /// World-to-camera translation: `x_cam = R x_world + t`.
@@ -228,7 +295,40 @@ impl Camera {
             }
         }
 
-        Ok(Camera { name, width, height, matrix, distortion, rotation, translation, mount_quarter_turns: 0 })
+        Ok(Camera {
+            name,
+            width,
+            height,
+            matrix,
+            distortion,
+            rotation,
+            translation,
+            fisheye: None,
+            mount_quarter_turns: 0,
+        })
+    }
+
+    /// This camera with OpenCV's fisheye lens model of coefficients `fisheye` instead of the
+    /// pinhole's distortion (which must then be zero); errors name the field `distortions`.
+    pub fn with_fisheye(mut self, fisheye: Fisheye) -> Result<Camera, RigError> {
+        for (label, value) in ["k1", "k2", "k3", "k4"].iter().zip(fisheye.as_array()) {
+            if !value.is_finite() {
+                return Err(RigError::field(
+                    &self.name,
+                    "distortions",
+                    format!("fisheye {label} is not finite ({value})"),
+                ));
+            }
+        }
+        if !self.distortion.is_zero() {
+            return Err(RigError::field(
+                &self.name,
+                "distortions",
+                "a fisheye camera has no pinhole distortion (k1 k2 p1 p2 k3)".to_owned(),
+            ));
+        }
+        self.fisheye = Some(fisheye);
+        Ok(self)
     }
 
     /// This camera mounted by `turns` clockwise quarter turns (taken modulo 4; see
@@ -296,15 +396,22 @@ impl Camera {
         ))
     }
 
-    /// Applies this camera's lens distortion to normalised coordinates
-    /// `(x/z, y/z)`; see [`Distortion::distort`].
+    /// Applies this camera's lens model to normalised coordinates `(x/z, y/z)`; see
+    /// [`Distortion::distort`] and [`Fisheye::distort`].
     pub fn distort(&self, normalised: Vector2<f64>) -> Vector2<f64> {
-        self.distortion.distort(normalised)
+        match &self.fisheye {
+            Some(fisheye) => fisheye.distort(normalised),
+            None => self.distortion.distort(normalised),
+        }
     }
 
-    /// Inverse of [`Self::distort`]; see [`Distortion::undistort`].
+    /// Inverse of [`Self::distort`]; see [`Distortion::undistort`] and
+    /// [`Fisheye::undistort`].
     pub fn undistort(&self, distorted: Vector2<f64>) -> Vector2<f64> {
-        self.distortion.undistort(distorted)
+        match &self.fisheye {
+            Some(fisheye) => fisheye.undistort(distorted),
+            None => self.distortion.undistort(distorted),
+        }
     }
 
     /// Undistorted normalised coordinates `(x/z, y/z)` of a pixel: `K⁻¹`, then

@@ -11,7 +11,8 @@
 //! (3x3 K), `distortions` (`k1 k2 p1 p2 [k3]`; four numbers mean `k3 = 0`),
 //! `rotation` (Rodrigues vector, world to camera; a 3x3 rotation matrix is
 //! accepted too), `translation` (world to camera) and optionally
-//! `fisheye = false`:
+//! `fisheye` (`true`: OpenCV's fisheye model, [`Fisheye`], whose four `distortions` are
+//! `k1 k2 k3 k4`):
 //!
 //! ```toml
 //! [cam_0]
@@ -70,7 +71,7 @@ pub const CALISCOPE_CONFIG_FILE: &str = "config.toml";
 /// File extensions (lower case) [`Rig::find_in_dir`] considers calibration files.
 const CALIBRATION_EXTENSIONS: [&str; 4] = ["toml", "yml", "yaml", "xml"];
 
-pub use camera::{Camera, Distortion, Ray};
+pub use camera::{Camera, Distortion, Fisheye, Ray};
 pub use error::RigError;
 pub use format::RigFormat;
 pub use up::{parse_direction, UpSource, WorldUp};
@@ -103,8 +104,8 @@ impl Rig {
 
     /// Parses a rig file's text (see the [module documentation](self) for the format).
     ///
-    /// Every camera is validated as by [`Camera::new`]; duplicate names, a
-    /// `fisheye = true` camera and a rig without cameras are errors too.
+    /// Every camera is validated as by [`Camera::new`]; duplicate names and a rig without
+    /// cameras are errors too.
     pub fn from_toml_str(text: &str) -> Result<Rig, RigError> {
         toml_format::parse(text)
     }

@@ -11,7 +11,7 @@ use toml::Value;
 
 use super::camera::rotation_problem;
 use super::up::unit_up;
-use super::{Camera, CameraList, Distortion, Rig, RigError, RigFormat, UpSource, WorldUp};
+use super::{Camera, CameraList, Distortion, Fisheye, Rig, RigError, RigFormat, UpSource, WorldUp};
 
 /// Tables with this name and no `matrix` hold calibration metadata, not a camera.
 const METADATA_TABLE: &str = "metadata";
@@ -161,8 +161,9 @@ fn parse_camera(key: &str, table: &toml::Table) -> Result<Camera, RigError> {
 }
 
 /// The camera of table `key` named `name`: `size`, `matrix`, `distortions`, `rotation`,
-/// `translation`, optional `fisheye = false` and the optional quarter-turn count
-/// `mount_key`. Shared by the anipose and caliscope layouts, which agree on these fields.
+/// `translation`, optional `fisheye` (then `distortions` are its `k1 k2 k3 k4`) and the
+/// optional quarter-turn count `mount_key`. Shared by the anipose and caliscope layouts,
+/// which agree on these fields.
 pub(super) fn camera_from_table(
     key: &str,
     name: String,
@@ -172,23 +173,23 @@ pub(super) fn camera_from_table(
     let context = Context { key, name: Some(&name) };
     let get = |field: &str| table.get(field).ok_or_else(|| context.error(field, "missing"));
 
-    // First, so that a fisheye file is reported as such rather than through
-    // whatever its distortions look like.
-    match table.get("fisheye") {
-        None | Some(Value::Boolean(false)) => {}
-        Some(Value::Boolean(true)) => {
-            return Err(context.error(
-                "fisheye",
-                "the fisheye lens model is not supported (only the OpenCV pinhole model with k1 k2 p1 p2 k3)",
-            ))
-        }
+    // First: it decides what `distortions` hold.
+    let fisheye = match table.get("fisheye") {
+        None | Some(Value::Boolean(false)) => false,
+        Some(Value::Boolean(true)) => true,
         Some(other) => return Err(context.error("fisheye", format!("expected a boolean, found {}", describe(other)))),
-    }
+    };
 
     let (width, height) = parse_size(get("size")?).map_err(|p| context.error("size", p))?;
     let matrix =
         parse_matrix3(get("matrix")?, "expected 3 rows of 3 numbers").map_err(|p| context.error("matrix", p))?;
-    let distortion = parse_distortions(get("distortions")?).map_err(|p| context.error("distortions", p))?;
+    let (distortion, fisheye) = if fisheye {
+        let k = parse_numbers(get("distortions")?, 4, "expected the 4 fisheye coefficients k1 k2 k3 k4")
+            .map_err(|p| context.error("distortions", p))?;
+        (Distortion::default(), Some(Fisheye { k1: k[0], k2: k[1], k3: k[2], k4: k[3] }))
+    } else {
+        (parse_distortions(get("distortions")?).map_err(|p| context.error("distortions", p))?, None)
+    };
     let rotation = parse_rotation(get("rotation")?).map_err(|p| context.error("rotation", p))?;
     let translation = parse_numbers(get("translation")?, 3, "expected 3 numbers (x, y, z)")
         .map(|v| Vector3::new(v[0], v[1], v[2]))
@@ -197,6 +198,10 @@ pub(super) fn camera_from_table(
     let turns = parse_quarter_turns(table.get(mount_key)).map_err(|p| context.error(mount_key, p))?;
 
     Camera::new(name.clone(), width, height, matrix, distortion, rotation, translation)
+        .and_then(|camera| match fisheye {
+            Some(fisheye) => camera.with_fisheye(fisheye),
+            None => Ok(camera),
+        })
         .map(|camera| camera.with_mount_quarter_turns(turns))
         .map_err(|error| match error {
             // Camera::new knows the camera by name only; point at the table too.
@@ -376,10 +381,13 @@ fn write_into(rig: &Rig, out: &mut String) -> fmt::Result {
         writeln!(out, "size = [{}, {}]", camera.width, camera.height)?;
         let rows: Vec<String> = (0..3).map(|r| list(&[k[(r, 0)], k[(r, 1)], k[(r, 2)]])).collect();
         writeln!(out, "matrix = [{}]", rows.join(", "))?;
-        writeln!(out, "distortions = {}", list(&camera.distortion.as_array()))?;
+        match &camera.fisheye {
+            Some(fisheye) => writeln!(out, "distortions = {}", list(&fisheye.as_array()))?,
+            None => writeln!(out, "distortions = {}", list(&camera.distortion.as_array()))?,
+        }
         writeln!(out, "rotation = {}", list(rodrigues(&camera.rotation).as_slice()))?;
         writeln!(out, "translation = {}", list(camera.translation.as_slice()))?;
-        writeln!(out, "fisheye = false")?;
+        writeln!(out, "fisheye = {}", camera.fisheye.is_some())?;
         if camera.mount_quarter_turns != 0 {
             writeln!(out, "{MOUNT_KEY} = {}", camera.mount_quarter_turns)?;
         }

@@ -16,10 +16,36 @@ pub struct LevelProjection {
     skew: f32,
     cx: f32,
     cy: f32,
-    distortion: Option<[f32; 5]>,
-    /// `K [R | t]` on this level, used when there is no distortion: one 3x4 product and one
-    /// division per projection.
+    lens: Lens,
+    /// `K [R | t]` on this level, used for an ideal pinhole: one 3x4 product and one division
+    /// per projection.
     matrix: [[f32; 4]; 3],
+}
+
+/// A camera's lens model in `f32`.
+#[derive(Clone, Copy, Debug)]
+enum Lens {
+    /// No distortion.
+    Pinhole,
+    /// OpenCV's `k1 k2 p1 p2 k3`.
+    Distorted([f32; 5]),
+    /// OpenCV's fisheye `k1 k2 k3 k4` ([`handflow_protocol::Fisheye`]).
+    Fisheye([f32; 4]),
+}
+
+/// The fisheye model's radial scale of a normalised point at radius² `r2`: `θd / r`. The
+/// one form both projections use, so their results are the same bits.
+#[inline(always)]
+fn fisheye_scale([k1, k2, k3, k4]: [f32; 4], r2: f32) -> f32 {
+    let r = r2.sqrt();
+    let theta = r.atan();
+    let t2 = theta * theta;
+    let theta_d = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))));
+    if r > 1e-12 {
+        theta_d / r
+    } else {
+        1.0
+    }
 }
 
 /// Quarter turns (0..=3, clockwise on the image) that take a step along the `reference`
@@ -85,7 +111,11 @@ impl LevelProjection {
             skew: (k[(0, 1)] * s) as f32,
             cx: ((k[(0, 2)] + 0.5) * s - 0.5) as f32,
             cy: ((k[(1, 2)] + 0.5) * s - 0.5) as f32,
-            distortion: (!d.is_zero()).then(|| d.as_array().map(|v| v as f32)),
+            lens: match camera.fisheye {
+                Some(fisheye) => Lens::Fisheye(fisheye.as_array().map(|v| v as f32)),
+                None if d.is_zero() => Lens::Pinhole,
+                None => Lens::Distorted(d.as_array().map(|v| v as f32)),
+            },
         }
     }
 
@@ -103,7 +133,7 @@ impl LevelProjection {
     /// Subpixel position of a world point on this level, or `None` behind the camera.
     #[inline(always)]
     pub fn project(&self, p: [f32; 3]) -> Option<[f32; 2]> {
-        if self.distortion.is_none() {
+        if let Lens::Pinhole = self.lens {
             let m = &self.matrix;
             let w = m[2][0] * p[0] + m[2][1] * p[1] + m[2][2] * p[2] + m[2][3];
             if w <= MIN_Z {
@@ -120,13 +150,21 @@ impl LevelProjection {
         }
         let inv = 1.0 / c[2];
         let (mut x, mut y) = (c[0] * inv, c[1] * inv);
-        if let Some([k1, k2, p1, p2, k3]) = self.distortion {
-            let r2 = x * x + y * y;
-            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-            let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-            let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-            x = xd;
-            y = yd;
+        match self.lens {
+            Lens::Pinhole => {}
+            Lens::Distorted([k1, k2, p1, p2, k3]) => {
+                let r2 = x * x + y * y;
+                let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+                let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+                let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+                x = xd;
+                y = yd;
+            }
+            Lens::Fisheye(k) => {
+                let scale = fisheye_scale(k, x * x + y * y);
+                x *= scale;
+                y *= scale;
+            }
         }
         Some([self.fx * x + self.skew * y + self.cx, self.fy * y + self.cy])
     }
@@ -140,7 +178,25 @@ impl LevelProjection {
     pub fn project_lanes<const L: usize>(&self, p: &[[f32; L]; 3], u: &mut [f32; L], v: &mut [f32; L]) -> [bool; L] {
         let mut ok = [false; L];
         let [px, py, pz] = p;
-        let Some([k1, k2, p1, p2, k3]) = self.distortion else {
+        let (r, t) = (&self.rotation, &self.translation);
+        if let Lens::Fisheye(k) = self.lens {
+            // Rare (wide lenses); the angle's arctangent is a call per lane.
+            for l in 0..L {
+                let c0 = r[0][0] * px[l] + r[0][1] * py[l] + r[0][2] * pz[l] + t[0];
+                let c1 = r[1][0] * px[l] + r[1][1] * py[l] + r[1][2] * pz[l] + t[1];
+                let c2 = r[2][0] * px[l] + r[2][1] * py[l] + r[2][2] * pz[l] + t[2];
+                ok[l] = c2 > MIN_Z || c2.is_nan();
+                let inv = 1.0 / c2;
+                let (mut x, mut y) = (c0 * inv, c1 * inv);
+                let scale = fisheye_scale(k, x * x + y * y);
+                x *= scale;
+                y *= scale;
+                u[l] = self.fx * x + self.skew * y + self.cx;
+                v[l] = self.fy * y + self.cy;
+            }
+            return ok;
+        }
+        let Lens::Distorted([k1, k2, p1, p2, k3]) = self.lens else {
             let m = &self.matrix;
             for l in 0..L {
                 let w = m[2][0] * px[l] + m[2][1] * py[l] + m[2][2] * pz[l] + m[2][3];
@@ -151,7 +207,6 @@ impl LevelProjection {
             }
             return ok;
         };
-        let (r, t) = (&self.rotation, &self.translation);
         for l in 0..L {
             let c0 = r[0][0] * px[l] + r[0][1] * py[l] + r[0][2] * pz[l] + t[0];
             let c1 = r[1][0] * px[l] + r[1][1] * py[l] + r[1][2] * pz[l] + t[1];
@@ -173,8 +228,15 @@ impl LevelProjection {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use handflow_protocol::{Distortion, Rig};
+    use handflow_protocol::{Distortion, Fisheye, Rig};
     use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
+
+    /// The test camera with OpenCV's fisheye model instead.
+    fn fisheye_camera() -> Camera {
+        camera(Distortion::default())
+            .with_fisheye(Fisheye { k1: 0.04, k2: -0.015, k3: 0.003, k4: -0.0004 })
+            .expect("valid fisheye")
+    }
 
     fn camera(distortion: Distortion) -> Camera {
         Camera::new(
@@ -192,8 +254,8 @@ mod tests {
     #[test]
     fn level_zero_matches_the_double_precision_camera() {
         let _ = Rig::default();
-        for d in [Distortion::default(), Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.002, k3: 0.0 }] {
-            let cam = camera(d);
+        let distorted = camera(Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.002, k3: 0.0 });
+        for cam in [camera(Distortion::default()), distorted, fisheye_camera()] {
             let fast = LevelProjection::new(&cam, 0);
             for p in [[0.1, 0.2, 1.0], [-0.3, 0.1, 0.5], [0.0, 0.0, 3.0]] {
                 let exact = cam.project(&Point3::new(p[0], p[1], p[2])).expect("in front");
@@ -229,8 +291,8 @@ mod tests {
             [0.2, 0.2, 0.05],
             [0.33, -0.21, 1.7],
         ];
-        for d in [Distortion::default(), Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.002, k3: 0.01 }] {
-            let cam = camera(d);
+        let distorted = camera(Distortion { k1: -0.2, k2: 0.05, p1: 0.001, p2: -0.002, k3: 0.01 });
+        for cam in [camera(Distortion::default()), distorted, fisheye_camera()] {
             let behind = cam.camera_to_world(&Point3::new(0.1, 0.0, -1.0));
             let mut lanes = points;
             lanes[5] = [behind.x as f32, behind.y as f32, behind.z as f32];

@@ -1,6 +1,6 @@
 //! A small ray tracer for the synthetic signer: exact images, object masks and truth.
 
-use handflow_protocol::{Camera, Distortion, Rig};
+use handflow_protocol::{Camera, Distortion, Fisheye, Rig};
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 use rayon::prelude::*;
 
@@ -433,8 +433,15 @@ impl Renderer {
 /// Cameras on the arc, looking at the chest point, with OpenCV conventions.
 fn make_rig(spec: &SceneSpec) -> Result<Rig, String> {
     let arc = &spec.cameras;
-    // The lens: `fov_deg` across the sensor's width, however the camera is mounted.
-    let f = 0.5 * f64::from(spec.width) / (0.5 * arc.fov_deg.to_radians()).tan();
+    // The lens: `fov_deg` across the sensor's width, however the camera is mounted. A
+    // fisheye lens images the edge's angle at radius f θd(θ) instead of f tan θ.
+    let half = 0.5 * arc.fov_deg.to_radians();
+    let fisheye = arc.fisheye.map(|[k1, k2, k3, k4]| Fisheye { k1, k2, k3, k4 });
+    let edge = match &fisheye {
+        Some(lens) => lens.distort(nalgebra::Vector2::new(half.tan(), 0.0)).x,
+        None => half.tan(),
+    };
+    let f = 0.5 * f64::from(spec.width) / edge;
     let target = Vector3::from(CHEST);
     let cameras = arc
         .angles_deg
@@ -463,6 +470,10 @@ fn make_rig(spec: &SceneSpec) -> Result<Rig, String> {
                 Rotation3::from_matrix_unchecked(Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]));
             let t = -(r * pos);
             Camera::new(format!("cam{i}"), w, h, k, Distortion::default(), r, t)
+                .and_then(|camera| match fisheye {
+                    Some(lens) => camera.with_fisheye(lens),
+                    None => Ok(camera),
+                })
                 .map(|camera| camera.with_mount_quarter_turns(turns))
                 .map_err(|e| e.to_string())
         })
@@ -711,7 +722,34 @@ mod tests {
             turned.cameras.mount_quarter_turns = turns.clone();
             scenes.push((format!("signer-3cam mounted {turns:?}"), turned));
         }
+        scenes.push(("signer-3cam through fisheye lenses".into(), fisheye(small("signer-3cam"))));
         scenes
+    }
+
+    /// `spec` through wide fisheye lenses, moved closer (as `tests/scenes/options`' fisheye scene).
+    fn fisheye(mut spec: SceneSpec) -> SceneSpec {
+        spec.cameras.fisheye = Some([0.03, -0.01, 0.002, 0.0]);
+        spec.cameras.fov_deg = 100.0;
+        spec.cameras.radius = 1.1;
+        spec
+    }
+
+    #[test]
+    fn a_fisheye_lens_spans_the_field_across_the_width_and_the_rig_says_so() {
+        let spec = fisheye(small("signer-3cam"));
+        let r = Renderer::new(&spec).expect("renderer");
+        for cam in &r.rig().cameras {
+            assert_eq!(cam.fisheye.map(|lens| lens.as_array()), Some([0.03, -0.01, 0.002, 0.0]));
+            // The ray through the right edge of the image (x = width - 1/2 from the centre
+            // at (width - 1) / 2) is half the field from the optical axis.
+            let edge = cam.back_project(&nalgebra::Point2::new(f64::from(cam.width) - 0.5, cam.matrix[(1, 2)]));
+            let angle = edge.direction.dot(&cam.viewing_direction()).acos().to_degrees();
+            assert!((angle - 50.0).abs() < 0.01, "{}: {angle} degrees at the edge", cam.name);
+        }
+        let mut bad = spec.clone();
+        bad.cameras.fisheye = Some([0.03, f64::NAN, 0.0, 0.0]);
+        let error = bad.validate().expect_err("a NaN coefficient");
+        assert!(error.contains("cameras.fisheye"), "{error}");
     }
 
     /// Renders frame `frame`: every view's colours and masks, and the truth.

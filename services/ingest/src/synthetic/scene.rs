@@ -126,6 +126,10 @@ pub struct CameraArc {
     /// each.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub mount_quarter_turns: Vec<u8>,
+    /// Every camera's lens as OpenCV's fisheye model with these coefficients `k1 k2 k3 k4`
+    /// (a wide lens calibrated so), `fov_deg` still spanning the width; default: pinhole.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fisheye: Option<[f64; 4]>,
 }
 
 fn default_fov() -> f64 {
@@ -185,6 +189,7 @@ impl SceneSpec {
             offset: vec![0.0, 12.0, -8.0][..angles.len().min(3)].to_vec(),
             colour_cast: vec![[1.0, 1.0, 1.0], [1.05, 1.0, 0.92], [0.94, 1.0, 1.06]][..angles.len().min(3)].to_vec(),
             mount_quarter_turns: Vec::new(),
+            fisheye: None,
         };
         let base = |cameras: CameraArc, motion: &str| SceneSpec {
             cameras,
@@ -244,6 +249,11 @@ impl SceneSpec {
         }
         if !(self.cameras.fov_deg > 5.0 && self.cameras.fov_deg < 150.0) {
             return Err(format!("`cameras.fov_deg` must be between 5 and 150, got {}", self.cameras.fov_deg));
+        }
+        if let Some(k) = self.cameras.fisheye {
+            if !k.iter().all(|c| c.is_finite() && c.abs() < 1.0) {
+                return Err(format!("`cameras.fisheye` must be 4 coefficients between -1 and 1, got {k:?}"));
+            }
         }
         if self.width < 16 || self.height < 16 || self.width > 8192 || self.height > 8192 {
             return Err(format!("`width` x `height` must be between 16 and 8192, got {}x{}", self.width, self.height));
