@@ -26,6 +26,9 @@ Each variant changes one thing a user's session may differ in:
                  among the project's settings), the recording in `recordings/recording_1/`
                  with videos `port_N.mp4` and `frame_time_history.csv`; the recording folder
                  is the one scored
+  freemocap      laid out as FreeMoCap writes a recording: videos synchronized_videos/
+                 Camera_000_synchronized.mp4.., the calibration (millimetres, as FreeMoCap's
+                 boards are measured) as `<session>_camera_calibration.toml`, no capture times
   fisheye        every camera as a wide lens calibrated with OpenCV's fisheye model: each
                  video resampled from its pinhole calibration into a fisheye image of the same
                  focal length (coefficients FISHEYE; the wider field's rim is black), the
@@ -354,6 +357,13 @@ def build(name, session, out, cameras, reference):
         write_caliscope_config(cameras, project / "config.toml")
         video_name = {n: n.replace("cam_", "port_") for n in names}
         timestamps_file = "frame_time_history.csv"
+    elif name == "freemocap":
+        rig = [dict(c, translation=[1000.0 * t for t in c["translation"]]) for c in cameras]
+        calibration = "session_camera_calibration.toml"
+        (d / "synchronized_videos").mkdir(exist_ok=True)
+        (d / "output_data").mkdir(exist_ok=True)
+        video_name = {n: f"synchronized_videos/Camera_{int(n.split('_')[-1]):03d}_synchronized" for n in names}
+        timestamps = False
     elif name == "fisheye":
         rig = [dict(c, distortions=FISHEYE, fisheye=True) for c in cameras]
         for c in cameras:
@@ -447,7 +457,7 @@ def main():
     frontal = most_frontal(cameras)
     names += [f"pair-{'-'.join(sorted([frontal, c['name']]))}" for c in cameras if c["name"] != frontal]
     names += ["sideways-cam_2", "sideways-cam_0"]
-    names += ["lossy", "warm-light", "dim", "dropped-frames", "caliscope-older", "fisheye"]
+    names += ["lossy", "warm-light", "dim", "dropped-frames", "caliscope-older", "freemocap", "fisheye"]
     if args.only:
         names = [n for n in names if n in args.only]
     objects = ("head", "left_hand", "right_hand")

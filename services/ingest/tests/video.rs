@@ -358,7 +358,7 @@ fn a_stream_without_colorimetry_decodes_as_ffmpeg_decodes_it() {
 }
 
 #[test]
-fn sessions_laid_out_as_pose2sim_and_caliscope_ship_them_open_as_they_are() {
+fn sessions_laid_out_as_pose2sim_caliscope_and_freemocap_ship_them_open_as_they_are() {
     if !have_ffmpeg() {
         return;
     }
@@ -425,6 +425,26 @@ fn sessions_laid_out_as_pose2sim_and_caliscope_ship_them_open_as_they_are() {
     assert_eq!(rec.len(), FRAMES as usize);
     rec.read_frame_into(1, false, &mut buf).unwrap();
     assert!(rec.views(&buf)[1] == pixels(1, 1).as_raw().as_slice(), "port_1.mp4 is camera cam_1");
+
+    // FreeMoCap: synchronized_videos/Camera_000_synchronized.mp4.., the calibration as
+    // `<session>_camera_calibration.toml` beside other files of the recording.
+    let session = tempfile::tempdir().unwrap();
+    let root = session.path();
+    std::fs::create_dir_all(root.join("synchronized_videos")).unwrap();
+    std::fs::create_dir_all(root.join("output_data")).unwrap();
+    std::fs::write(root.join("settings.toml"), "[recording]\nname = \"session_1\"\n").unwrap();
+    rig(&["cam_0", "cam_1"], W, H).save(root.join("session_1_camera_calibration.toml")).unwrap();
+    // Before its videos are there, the error says where they were looked for.
+    let error = Recording::open(root).expect_err("no videos yet").to_string();
+    assert!(error.contains("no video") && error.contains("synchronized_videos/") && error.contains("cam_1"), "{error}");
+    for c in 0..2 {
+        encode(c, &root.join(format!("synchronized_videos/Camera_{c:03}_synchronized.mp4")), &LOSSLESS_MP4);
+    }
+    let rec = Recording::open(root).unwrap_or_else(|e| panic!("{e}"));
+    assert!(rec.calibration_paths()[0].ends_with("session_1_camera_calibration.toml"));
+    assert_eq!(rec.len(), FRAMES as usize);
+    rec.read_frame_into(2, false, &mut buf).unwrap();
+    assert!(rec.views(&buf)[1] == pixels(1, 2).as_raw().as_slice(), "Camera_001 is camera cam_1");
 }
 
 #[test]

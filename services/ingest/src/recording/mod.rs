@@ -27,7 +27,8 @@
 //!   with a note and the intrinsics unchanged.
 //!
 //! Where the tools people use put things is looked for too: Pose2Sim's `videos/` and
-//! `calibration/` folders of a session, caliscope's older `frame_time_history.csv` (cameras
+//! `calibration/` folders of a session, FreeMoCap's `synchronized_videos/` and
+//! `<session>_camera_calibration.toml`, caliscope's older `frame_time_history.csv` (cameras
 //! as `port`, sets grouped by capture time when it has no `sync_index`), and a caliscope
 //! `camera_array.toml` (or an older version's `config.toml`) up to two folders above a
 //! recording (`recordings/<name>/`).
@@ -68,6 +69,10 @@ pub const RIG_FILE: &str = "rig.toml";
 pub const TRUTH_FILE: &str = "truth.json";
 /// Where Pose2Sim keeps a session's videos.
 pub const VIDEOS_DIR: &str = "videos";
+/// Where FreeMoCap keeps a recording's videos (one per camera, cut to the same frames).
+pub const FREEMOCAP_VIDEOS_DIR: &str = "synchronized_videos";
+/// How FreeMoCap names a recording's calibration: `<session>_camera_calibration.toml`.
+pub const FREEMOCAP_CALIBRATION_SUFFIX: &str = "_camera_calibration.toml";
 /// Where Pose2Sim keeps a session's calibration.
 pub const CALIBRATION_DIR: &str = "calibration";
 /// Video file extensions a recording's folder is searched for (lower case).
@@ -327,14 +332,28 @@ impl Recording {
         }
         .map_err(rig_error)?;
         let mut notes: Vec<String> = rig.notes.clone();
-        // Pose2Sim keeps a session's videos in `videos/`.
+        // Pose2Sim keeps a session's videos in `videos/`, FreeMoCap in `synchronized_videos/`.
         let mut video_dir = dir.clone();
-        if !entries.iter().any(|p| is_video(p)) && dir.join(VIDEOS_DIR).is_dir() {
-            video_dir = dir.join(VIDEOS_DIR);
-            entries = list_dir(&video_dir)?;
+        if !entries.iter().any(|p| is_video(p)) {
+            if let Some(found) = [VIDEOS_DIR, FREEMOCAP_VIDEOS_DIR].iter().map(|d| dir.join(d)).find(|d| d.is_dir()) {
+                video_dir = found;
+                entries = list_dir(&video_dir)?;
+            }
         }
         let videos: Vec<PathBuf> = entries.iter().filter(|p| is_video(p)).cloned().collect();
         let has_camera_folders = rig.cameras.iter().any(|c| dir.join(&c.name).is_dir());
+        if videos.is_empty() && !has_camera_folders && !dir.join(FRAMES_FILE).is_file() {
+            let names: Vec<&str> = rig.cameras.iter().map(|c| c.name.as_str()).collect();
+            return Err(RecordingError::Layout {
+                dir,
+                problem: format!(
+                    "no video ({}) here or in `{VIDEOS_DIR}/` or `{FREEMOCAP_VIDEOS_DIR}/`, and no image folder named \
+                     after a camera of the calibration ({})",
+                    VIDEO_EXTENSIONS.join(", "),
+                    names.join(", ")
+                ),
+            });
+        }
         let mut recording = if !videos.is_empty() && !has_camera_folders {
             open_videos(&dir, &video_dir, rig, &videos, &mut notes)?
         } else {
@@ -667,7 +686,8 @@ fn is_video(path: &Path) -> bool {
 }
 
 /// A recording's calibration, where the tools people use leave it: the folder's `rig.toml`
-/// or `camera_array.toml`; else its `calibration/` folder's (Pose2Sim); else the folder's
+/// or `camera_array.toml`; else its `calibration/` folder's (Pose2Sim); else its one
+/// `<session>_camera_calibration.toml` (FreeMoCap); else the folder's
 /// only calibration file ([`Rig::find_in_dir`]); else a `rig.toml` or `camera_array.toml`
 /// up to two folders above, or an older caliscope project's `config.toml` that holds its
 /// cameras (caliscope keeps recordings in `recordings/<name>/` below the session's
@@ -683,6 +703,17 @@ fn find_calibration(dir: &Path) -> Result<Vec<PathBuf>, RigError> {
         if let Ok(found) = Rig::find_in_dir(&pose2sim) {
             return Ok(found);
         }
+    }
+    // FreeMoCap's `<session>_camera_calibration.toml`, when there is one.
+    let freemocap: Vec<PathBuf> = list_dir(dir)
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|p| {
+            p.is_file() && p.file_name().is_some_and(|n| n.to_string_lossy().ends_with(FREEMOCAP_CALIBRATION_SUFFIX))
+        })
+        .collect();
+    if let [one] = &freemocap[..] {
+        return Ok(vec![one.clone()]);
     }
     let own = Rig::find_in_dir(dir);
     if own.is_err() {
