@@ -182,9 +182,7 @@ impl LevelProjection {
         if let Lens::Fisheye(k) = self.lens {
             // Rare (wide lenses); the angle's arctangent is a call per lane.
             for l in 0..L {
-                let c0 = r[0][0] * px[l] + r[0][1] * py[l] + r[0][2] * pz[l] + t[0];
-                let c1 = r[1][0] * px[l] + r[1][1] * py[l] + r[1][2] * pz[l] + t[1];
-                let c2 = r[2][0] * px[l] + r[2][1] * py[l] + r[2][2] * pz[l] + t[2];
+                let [c0, c1, c2] = self.to_camera([px[l], py[l], pz[l]]);
                 ok[l] = c2 > MIN_Z || c2.is_nan();
                 let inv = 1.0 / c2;
                 let (mut x, mut y) = (c0 * inv, c1 * inv);
