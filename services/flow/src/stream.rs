@@ -559,7 +559,7 @@ pub enum SetOutcome<'a> {
         /// The face cue of [`FlowStream::face_cue_of_last_estimate`].
         face: Option<FaceCue>,
     },
-    /// A set passed over ([`FlowStream::pass_over`]): the engine spanned it, no estimate.
+    /// A set passed over ([`FlowStream::pass_over`]): no estimate.
     PassedOver,
 }
 
@@ -792,9 +792,10 @@ impl<M> FlowStream<M> {
     }
 
     /// Passes over the next frame set: one the engine cannot estimate (it lacks the reference
-    /// camera's view, which every ray starts from). The engine spans it as a gap, and it is
-    /// handed out as [`SetOutcome::PassedOver`] in its place among the estimates, so the
-    /// caller's records stay in order (clustering coasts its tracks there).
+    /// camera's view, which every ray starts from). It is handed out as
+    /// [`SetOutcome::PassedOver`] in its place among the estimates, so the caller's records
+    /// stay in order (clustering coasts its tracks there); with the sets pushed at their grid
+    /// index ([`FlowStream::push_partial_at`]) the engine spans it as a gap.
     pub fn pass_over<E: From<StreamError>>(
         &mut self,
         meta: M,
