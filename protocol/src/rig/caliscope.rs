@@ -5,8 +5,9 @@
 //!   `port`, beside the project's other settings (`[charuco]`, `camera_count`, ...), which are
 //!   ignored; rotations there are Rodrigues vectors (caliscope saved them so).
 //!
-//! Each camera table has `size`, `matrix` (K), `distortions` (k1 k2 p1 p2 k3), `rotation`
-//! (world to camera), `translation` (world to camera, metres) and `rotation_count`
+//! Each camera table has `size`, `matrix` (K), `distortions` (k1 k2 p1 p2 k3; with
+//! `fisheye = true`, OpenCV's fisheye k1 k2 k3 k4), `rotation` (world to camera, 3x3 or a
+//! Rodrigues vector), `translation` (world to camera, metres) and `rotation_count`
 //! (clockwise quarter turns that make the raw frames upright, -3..=3); the calibration is
 //! of the raw frames, so it is kept as [`super::Camera::mount_quarter_turns`] and
 //! projection ignores it. caliscope's bookkeeping (`cam_id`, `port`, `error`, `exposure`,
