@@ -143,21 +143,13 @@ pub fn inspect_recording(dir: &Path, options: &TrackOptions, frame: u64, out: &P
             }
             Err(error) => return Err(anyhow::Error::from(error).context(format!("frame {}", rec.frames()[k].frame))),
         };
-        if missing & (1 << reference) != 0 {
-            // As `track`: the rays start in the reference view, the tracks coast there.
-            let camera = &rig.cameras[reference].name;
-            anyhow::ensure!(k != index, "frame {frame} has no view of the reference camera `{camera}`: no estimate");
-            tracing::error!("frame set {k}: the reference camera `{camera}` has no frame in it");
-            match flow.pass_over(k, &mut on_estimate) {
-                Ok(()) => continue,
-                Err(Halt::Reached) => {
-                    reached = true;
-                    break;
-                }
-                Err(Halt::Failed(e)) => return Err(e.context(format!("frame {}", rec.frames()[k].frame))),
-            }
-        }
         if k == index {
+            // The rays start in the reference view: without it the set is passed over.
+            let camera = &rig.cameras[reference].name;
+            anyhow::ensure!(
+                missing & (1 << reference) == 0,
+                "frame {frame} has no view of the reference camera `{camera}`: no estimate"
+            );
             inspected = Some(buf.clone());
         }
         match flow.push_partial_at(k, &buf, missing, k as u64, &mut on_estimate) {

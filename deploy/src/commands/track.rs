@@ -123,7 +123,7 @@ pub fn track_recording(
     let fps = rec.frame_rate();
     let frames = rec.len();
     anyhow::ensure!(frames >= 2, "recording `{}` needs at least 2 frames, has {frames}", dir.display());
-    let (mut flow, mut stage, reference) = tracker_stages(options, &rig, up.direction, fps)?;
+    let (mut flow, mut stage, _) = tracker_stages(options, &rig, up.direction, fps)?;
     let mut written = 0;
     let mut skipped: u64 = 0;
     // Every frame gets an estimate (the last through the flush; the first unless the
@@ -209,19 +209,7 @@ pub fn track_recording(
                 return Err(fatal_rx.try_recv().unwrap_or_else(|_| anyhow::anyhow!("the decoding thread stopped")));
             };
             let (buf, missing) = match read {
-                Ok((buf, missing)) if missing & (1 << reference) == 0 => (buf, missing),
-                Ok((buf, _)) => {
-                    // The rays start in the reference view: as in the flow stage, the engine
-                    // spans the set, and its record is the tracks' predictions.
-                    tracing::error!(
-                        "frame set {k}: the reference camera `{}` has no frame in it; its trajectories are the \
-                         tracks' predictions",
-                        rig.cameras[reference].name
-                    );
-                    let _ = spare_tx.send(buf);
-                    flow.pass_over(Estimate { index: k, dropped: skipped }, &mut on_estimate)?;
-                    continue;
-                }
+                Ok(read) => read,
                 Err(problem) => {
                     // One error per bad frame set; the stream goes on without it.
                     skipped += 1;
@@ -231,7 +219,9 @@ pub fn track_recording(
             };
             // Indexed by position, so a set skipped above is a gap the engine spans (as the
             // flow stage does on a replay's sequence numbers) rather than one frame interval.
-            // A camera that dropped its frame of the set is left out of it, as live.
+            // A camera that dropped its frame of the set is left out of it, as live (without
+            // the reference camera's, the set is passed over: its record is the tracks'
+            // predictions).
             let pushed = flow.push_partial_at(
                 Estimate { index: k, dropped: skipped },
                 &buf,

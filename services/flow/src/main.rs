@@ -34,7 +34,7 @@ struct Args {
 const LIVE_DETECT_INTERVAL_S: f64 = 1.0;
 
 /// What the stage remembers of a frame until its estimate is out.
-#[derive(Clone, Debug)]
+#[derive(Clone, Copy, Debug)]
 struct FrameMeta {
     sequence: u64,
     frame: u64,
@@ -146,18 +146,6 @@ fn run(args: Args) -> Result<()> {
             capture_unix_ns: header.capture_unix_ns,
             missing_views: header.missing_views,
         };
-        if !header.has_view(reference) {
-            // A replayed webcam that dropped its frame: the rays start in the reference
-            // view, so the engine spans the set and clustering coasts the tracks there.
-            tracing::error!(
-                "frame set {}: the reference camera `{}` has no view in it; its trajectories are the tracks' \
-                 predictions",
-                header.sequence,
-                rig.cameras[reference].name
-            );
-            stream.pass_over(meta, &mut publish).with_context(|| format!("frame set {}", header.sequence))?;
-            return Ok(Next::Continue);
-        }
         let pushed =
             stream.push_partial_at(meta, sample.payload(), header.missing_views, header.sequence, &mut publish);
         drop(sample);

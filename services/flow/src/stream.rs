@@ -743,7 +743,9 @@ impl<M> FlowStream<M> {
 
     /// [`FlowStream::push`] for a set some cameras gave no view for (bit `k` of `missing`:
     /// camera `k`; its bytes are ignored): the engine leaves those views out, the face
-    /// detector does not look at them and their skin models keep their state.
+    /// detector does not look at them and their skin models keep their state. A set without
+    /// the reference camera's view is passed over ([`FlowStream::pass_over`]), with an error
+    /// logged.
     pub fn push_partial<E: From<StreamError>>(
         &mut self,
         meta: M,
@@ -779,6 +781,16 @@ impl<M> FlowStream<M> {
     ) -> Result<(), E> {
         if frame_set.len() != self.frame_set_len {
             return Err(StreamError::FrameSetLength { expected: self.frame_set_len, got: frame_set.len() }.into());
+        }
+        let reference = self.engine.reference();
+        if 1u32.checked_shl(reference as u32).is_some_and(|bit| missing & bit != 0) {
+            // Every ray starts in the reference view (a webcam that dropped its frame).
+            tracing::error!(
+                "{}: the reference camera `{}` has no frame in it; its trajectories are the tracks' predictions",
+                index.map_or_else(|| "a frame set".to_string(), |i| format!("frame set {i}")),
+                self.engine.cameras()[reference].name
+            );
+            return self.pass_over(meta, on_estimate);
         }
         if let Some(held) = self.held.as_mut() {
             // Copies only the first frames of a stream, once.
