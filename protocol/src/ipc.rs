@@ -206,10 +206,17 @@ fn service_name(name: &str) -> Result<ServiceName, IpcError> {
 /// A node named after its stage. iceoryx2's own log (which warns about a missing config
 /// file in every process) is kept to errors unless `IOX2_LOG_LEVEL` says otherwise.
 pub fn create_node(stage: &str) -> Result<Node<Ipc>, IpcError> {
+    let namespace = UserNamespace::of_this_process().map_err(|e| IpcError::new(stage, e))?;
+    create_node_in(&namespace, stage)
+}
+
+/// [`create_node`] in `namespace`. Segments a killed process left half created are removed
+/// first: the node's creation would wait on them forever.
+pub fn create_node_in(namespace: &UserNamespace, stage: &str) -> Result<Node<Ipc>, IpcError> {
     set_log_level_from_env_or(LogLevel::Error);
     let name = NodeName::new(stage).map_err(|e| IpcError::new(stage, format!("not a valid node name: {e:?}")))?;
-    let namespace = UserNamespace::of_this_process().map_err(|e| IpcError::new(stage, e))?;
     namespace.check_owner().map_err(|e| IpcError::new(stage, e))?;
+    namespace.remove_unfinished_segments();
     let config = namespace.config().map_err(|e| IpcError::new(stage, e))?;
     NodeBuilder::new()
         .name(&name)
@@ -228,12 +235,24 @@ pub fn create_node(stage: &str) -> Result<Node<Ipc>, IpcError> {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct UserNamespace {
     uid: u32,
+    /// Empty for the user's own namespace; else what sets an isolated one apart.
+    label: String,
 }
 
 impl UserNamespace {
     /// The namespace of user `uid`.
     pub fn new(uid: u32) -> Self {
-        Self { uid }
+        Self { uid, label: String::new() }
+    }
+
+    /// A namespace of user `uid` apart from their own, named by `label` (ASCII letters and
+    /// digits): nothing in it meets the user's pipelines, e.g. for tests that leave
+    /// debris on purpose.
+    pub fn isolated(uid: u32, label: &str) -> Result<Self, String> {
+        if label.is_empty() || !label.bytes().all(|b| b.is_ascii_alphanumeric()) {
+            return Err(format!("`{label}`: a namespace's label is ASCII letters and digits"));
+        }
+        Ok(Self { uid, label: label.to_string() })
     }
 
     /// The namespace of the user running this process (its effective user, the owner of
@@ -247,12 +266,19 @@ impl UserNamespace {
 
     /// The directory of iceoryx2's service and node files.
     pub fn root_dir(&self) -> String {
-        format!("/tmp/handflow-iox2-{}/", self.uid)
+        format!("/tmp/handflow-iox2-{}{}/", self.uid, self.label)
     }
 
     /// The prefix of every file name, shared memory included.
     pub fn file_prefix(&self) -> String {
-        format!("hf{}_", self.uid)
+        format!("hf{}{}_", self.uid, self.label)
+    }
+
+    /// Removes the shared memory a process of this namespace was killed while creating
+    /// (see [`crate::unfinished_shm`]), waiting for a segment being created at this moment;
+    /// says so in the log when it removed any.
+    pub fn remove_unfinished_segments(&self) {
+        remove_unfinished_segments(&self.file_prefix());
     }
 
     /// Refuses a directory that exists but belongs to another user: someone else could
@@ -346,7 +372,28 @@ pub fn exit_with<E: fmt::Display>(result: Result<(), E>) -> ! {
 /// lossless publisher would wait on a dead subscriber forever). Returns how many dead
 /// nodes were cleaned.
 pub fn cleanup_dead_nodes(node: &Node<Ipc>) -> usize {
+    // A process that just died may have died creating a segment, on which the cleanup
+    // would wait forever.
+    remove_unfinished_segments(&node.config().global.prefix.to_string());
     node.try_cleanup_dead_nodes().cleanups as usize
+}
+
+/// [`crate::unfinished_shm::remove_unfinished_segments`] for the files named `prefix...`,
+/// logged when it removed any.
+fn remove_unfinished_segments(prefix: &str) {
+    let removed = crate::unfinished_shm::remove_unfinished_segments(
+        std::path::Path::new(crate::unfinished_shm::SHARED_MEMORY_DIR),
+        prefix,
+        crate::unfinished_shm::GRACE,
+    );
+    if !removed.is_empty() {
+        let names: Vec<String> = removed.iter().map(|p| p.display().to_string()).collect();
+        tracing::warn!(
+            "removed {} shared-memory segment(s) a killed process left half created: {}",
+            removed.len(),
+            names.join(", ")
+        );
+    }
 }
 
 /// The sending end of a service: its publisher and the notifier that wakes subscribers.
@@ -1042,6 +1089,74 @@ mod tests {
         assert_ne!(a, b);
         assert_eq!(a.parent().unwrap(), std::path::Path::new("/tmp/handflow-iox2-1000/"));
         assert!(!a.file_name().unwrap().to_str().unwrap().contains('/'));
+    }
+
+    /// Names the isolated namespace the victim of the next test creates its node in.
+    const VICTIM_LABEL_ENV: &str = "HANDFLOW_TEST_VICTIM_NAMESPACE";
+
+    /// Run by the next test as a process of its own: a node with a service in the
+    /// namespace the environment names, then waits to be killed. Does nothing otherwise.
+    #[test]
+    #[ignore = "a helper process of the unsized-segment test, started by it"]
+    fn victim_of_the_unsized_segment_test() {
+        let Ok(label) = std::env::var(VICTIM_LABEL_ENV) else { return };
+        let namespace = UserNamespace::isolated(UserNamespace::of_this_process().unwrap().uid, &label).unwrap();
+        let node = create_node_in(&namespace, "victim").unwrap();
+        let _frames = frames_output(&node, &ServiceNames::new("victim"), Mode::Live, 4).unwrap();
+        println!("victim ready");
+        std::thread::sleep(Duration::from_secs(120));
+    }
+
+    #[test]
+    fn a_node_is_created_although_a_killed_process_left_a_segment_it_never_sized() {
+        use std::io::BufRead;
+        use std::os::unix::fs::OpenOptionsExt;
+        let uid = UserNamespace::of_this_process().unwrap().uid;
+        let label = format!("unsized{}", std::process::id());
+        let namespace = UserNamespace::isolated(uid, &label).unwrap();
+        let mut victim = std::process::Command::new(std::env::current_exe().unwrap())
+            .args(["--exact", "ipc::tests::victim_of_the_unsized_segment_test", "--ignored", "--nocapture"])
+            .env(VICTIM_LABEL_ENV, &label)
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let stdout = std::io::BufReader::new(victim.stdout.take().unwrap());
+        let ready = stdout.lines().map_while(Result::ok).any(|line| line == "victim ready");
+        let _ = victim.kill();
+        let _ = victim.wait();
+        assert!(ready, "the victim process created its node and service");
+        // What a process killed between creating its service's segments and sizing them
+        // leaves: write-only segments of size zero.
+        let shm = std::path::Path::new(crate::unfinished_shm::SHARED_MEMORY_DIR);
+        let mut emptied = 0;
+        for entry in std::fs::read_dir(shm).unwrap().flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if name.starts_with(&namespace.file_prefix()) && name.ends_with(".dynamic") {
+                std::fs::remove_file(entry.path()).unwrap();
+                std::fs::OpenOptions::new().write(true).create_new(true).mode(0o200).open(entry.path()).unwrap();
+                emptied += 1;
+            }
+        }
+        assert!(emptied > 0, "the victim's service has a dynamic segment");
+        // Creating a node cleans up the dead victim, whose service's segment iceoryx2
+        // would wait on forever.
+        let (tx, rx) = std::sync::mpsc::channel();
+        let apart = namespace.clone();
+        std::thread::spawn(move || {
+            let _ = tx.send(create_node_in(&apart, "after-the-kill").map(|node| cleanup_dead_nodes(&node)));
+        });
+        let outcome = rx.recv_timeout(Duration::from_secs(60));
+        let _ = std::fs::remove_dir_all(namespace.root_dir());
+        for entry in std::fs::read_dir(shm).unwrap().flatten() {
+            if entry.file_name().to_string_lossy().starts_with(&namespace.file_prefix()) {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
+        match outcome {
+            Ok(Ok(_)) => {}
+            Ok(Err(e)) => panic!("the node was not created: {e}"),
+            Err(_) => panic!("creating a node waited a minute on the segment the killed process never sized"),
+        }
     }
 
     #[test]

@@ -19,6 +19,7 @@ pub mod isa;
 pub mod messages;
 pub mod records;
 pub mod rig;
+pub mod unfinished_shm;
 pub mod wire;
 
 /// Text files read from outside (calibrations, frame tables, pipeline and scene files) are
