@@ -11,7 +11,9 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use handflow::eval::tracks::{evaluate_tracks, read_tracks};
-use handflow_e2e::{binaries_dir, exit_within, render_preset, spawn_lines, track_with_cli, unique_prefix};
+use handflow_e2e::{
+    binaries_dir, exit_within, in_own_group, render_preset, spawn_lines, track_with_cli, unique_prefix,
+};
 use handflow_ingest::Recording;
 
 static ONE_PIPELINE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -26,23 +28,27 @@ fn have_ffmpeg() -> bool {
 
 /// Runs `handflow run --pipeline FILE`, returning whether it succeeded and its log.
 fn run_pipeline(file: &Path, timeout: Duration) -> (bool, String) {
-    let mut child: Child = Command::new(binaries_dir().join("handflow"))
-        .args(["run", "--no-viewer"])
-        .arg(file)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    run_handflow(&["run".as_ref(), "--no-viewer".as_ref(), file.as_os_str()], timeout)
+}
+
+/// Runs `handflow ARGS` in a process group of its own, returning whether it succeeded and
+/// its log; after `timeout` the whole group is killed and the test fails with the log so
+/// far.
+fn run_handflow(args: &[&std::ffi::OsStr], timeout: Duration) -> (bool, String) {
+    let mut command = Command::new(binaries_dir().join("handflow"));
+    command.args(args).stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::piped());
+    let mut child: Child = in_own_group(&mut command).spawn().unwrap();
     let mut stderr = child.stderr.take().unwrap();
     let reader = std::thread::spawn(move || {
         let mut text = String::new();
         let _ = stderr.read_to_string(&mut text);
         text
     });
-    let status =
-        exit_within(&mut child, timeout).unwrap_or_else(|| panic!("the pipeline did not end within {timeout:?}"));
-    (status.success(), reader.join().unwrap())
+    let status = exit_within(&mut child, timeout);
+    // Every process that held the log's pipe is gone once the group is: the reader ends.
+    let log = reader.join().unwrap();
+    let status = status.unwrap_or_else(|| panic!("`handflow {args:?}` did not end within {timeout:?}:\n{log}"));
+    (status.success(), log)
 }
 
 /// Each camera's rendered frames as an H.264 video at `fps`.
@@ -213,19 +219,11 @@ fn a_lossless_recording_of_live_cameras_replays_to_the_live_runs_trajectories_fr
     // pipeline), and every frame set published is tracked and recorded.
     let (file, live_out) = write_pipeline(dir.path(), "replay", &rec, "live-record", &video_sources(&videos), 30);
     let recorded = dir.path().join("session");
-    let mut child = Command::new(binaries_dir().join("handflow"))
-        .args(["record", "--pipeline"])
-        .arg(&file)
-        .arg("--out")
-        .arg(&recorded)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut log = String::new();
-    child.stderr.take().unwrap().read_to_string(&mut log).unwrap();
-    assert!(child.wait().unwrap().success(), "the recording run failed:\n{log}");
+    let (ok, log) = run_handflow(
+        &["record".as_ref(), "--pipeline".as_ref(), file.as_os_str(), "--out".as_ref(), recorded.as_os_str()],
+        Duration::from_secs(300),
+    );
+    assert!(ok, "the recording run failed:\n{log}");
     assert!(log.contains("recorded ") && log.contains("frame sets into"), "{log}");
 
     let samples = std::fs::read_to_string(&live_out).unwrap().lines().count();

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use handflow::commands::track::{track_recording, TrackOptions};
 use handflow::eval::tracks::{evaluate_tracks, read_tracks};
-use handflow_e2e::{binaries_dir, exit_within, pids_of, render_preset, unique_prefix};
+use handflow_e2e::{binaries_dir, exit_within, in_own_group, pids_of, render_preset, unique_prefix};
 use handflow_ingest::Recording;
 use handflow_protocol::ipc::{self, Mode, ServiceNames};
 use handflow_protocol::messages::{FrameHeader, RigHeader, END_OF_STREAM, PIXEL_FORMAT_RGB8, PROTOCOL_VERSION};
@@ -71,14 +71,9 @@ impl Log {
 }
 
 fn launcher(args: &[&str]) -> Child {
-    Command::new(binaries_dir().join("handflow"))
-        .args(["run", "--no-viewer"])
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+    let mut command = Command::new(binaries_dir().join("handflow"));
+    command.args(["run", "--no-viewer"]).args(args).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped());
+    in_own_group(&mut command).spawn().unwrap()
 }
 
 /// Waits for `child` to exit, killing it after `timeout`.

@@ -14,7 +14,9 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use handflow_e2e::browser::{chromium_binary, http_get, Browser};
-use handflow_e2e::{binaries_dir, exit_within, pids_of, render_preset, track_with_cli, unique_prefix};
+use handflow_e2e::{
+    binaries_dir, exit_within, in_own_group, kill_group, pids_of, render_preset, track_with_cli, unique_prefix,
+};
 use serde_json::Value;
 use tungstenite::client::IntoClientRequest;
 
@@ -65,7 +67,7 @@ impl Drop for RunningPipeline {
         let started = Instant::now();
         while matches!(child.try_wait(), Ok(None)) {
             if started.elapsed() > Duration::from_secs(30) {
-                let _ = child.kill();
+                kill_group(child);
                 break;
             }
             std::thread::sleep(Duration::from_millis(50));
@@ -75,7 +77,7 @@ impl Drop for RunningPipeline {
 
 /// `handflow run` on `rec`, looped at the recorded pace, with the viewer on `port`.
 fn start_pipeline(rec: &Path, out: &Path, prefix: &str, port: u16, log: &Path) -> RunningPipeline {
-    let child = Command::new(binaries_dir().join("handflow"))
+    let child = in_own_group(&mut Command::new(binaries_dir().join("handflow")))
         .args(["run", "--loop", "--pace", "recorded", "--services", prefix, "--viewer"])
         .arg(format!("127.0.0.1:{port}"))
         .arg("--recording")
@@ -256,7 +258,7 @@ fn a_replay_with_the_viewer_on_writes_what_track_writes() {
     for run in 0..2 {
         let out = dir.path().join(format!("replayed-{run}.jsonl"));
         let log = dir.path().join(format!("run-{run}.log"));
-        let mut child = Command::new(binaries_dir().join("handflow"))
+        let mut child = in_own_group(&mut Command::new(binaries_dir().join("handflow")))
             .args(["run", "--services", &unique_prefix("viewer-replay"), "--viewer"])
             .arg(format!("127.0.0.1:{}", free_port()))
             .arg("--recording")

@@ -149,7 +149,8 @@ impl LineProcess {
     }
 }
 
-/// Waits for `child` to exit; after `timeout` kills it and returns `None`.
+/// Waits for `child` to exit; after `timeout` kills it (see [`kill_group`]) and returns
+/// `None`.
 pub fn exit_within(child: &mut std::process::Child, timeout: std::time::Duration) -> Option<std::process::ExitStatus> {
     let started = std::time::Instant::now();
     loop {
@@ -157,9 +158,30 @@ pub fn exit_within(child: &mut std::process::Child, timeout: std::time::Duration
             return Some(status);
         }
         if started.elapsed() > timeout {
-            let _ = child.kill();
+            kill_group(child);
             return None;
         }
         std::thread::sleep(std::time::Duration::from_millis(20));
     }
+}
+
+/// Makes `command` start a process group of its own: a launcher started so takes its
+/// stages along when [`kill_group`] kills it, and nothing is left holding the pipes a
+/// test reads to their end.
+pub fn in_own_group(command: &mut Command) -> &mut Command {
+    std::os::unix::process::CommandExt::process_group(command, 0)
+}
+
+/// SIGKILL to `child`'s whole process group when it leads one (started [`in_own_group`]),
+/// else to `child` alone; then reaps it.
+pub fn kill_group(child: &mut std::process::Child) {
+    use nix::sys::signal::{killpg, Signal};
+    use nix::unistd::{getpgid, Pid};
+    let pid = Pid::from_raw(child.id() as i32);
+    if getpgid(Some(pid)) == Ok(pid) {
+        let _ = killpg(pid, Signal::SIGKILL);
+    } else {
+        let _ = child.kill();
+    }
+    let _ = child.wait();
 }
