@@ -163,6 +163,18 @@ pub struct TrackerConfig {
     /// shoulder). Tracks start only on hands within this reach, so skin-like clutter or a
     /// ghost surface behind the signer never becomes a hand.
     pub reach_m: f64,
+    /// Seconds after the tracks start in which the first labelling, by the signer's side,
+    /// still holds once a hand track has jumped (default 1.0): after a re-initialisation of
+    /// a hand in that time, two measured hands found on each other's side, farther apart
+    /// across the signer than [`TrackerConfig::settle_margin_m`], trade labels. A hand track
+    /// started on a forearm or a piece of the body jumps to a hand in its first frames, and
+    /// can take the one its neighbour should have (measured on a fisheye rendering of the
+    /// shared session: both hands on the wrong side from frame 3 to the end). Hands followed
+    /// without a jump keep their labels through a crossing.
+    pub settle_s: f64,
+    /// How far across the signer two hands must be on each other's side to trade labels
+    /// while settling, metres (default 0.15: hands held together at the middle never do).
+    pub settle_margin_m: f64,
 }
 
 impl Default for TrackerConfig {
@@ -181,6 +193,8 @@ impl Default for TrackerConfig {
             typical_mass_time_s: 0.32,
             face_anchor_m: 0.25,
             reach_m: 1.0,
+            settle_s: 1.0,
+            settle_margin_m: 0.15,
         }
     }
 }
@@ -257,6 +271,10 @@ pub struct Tracker {
     assigned: [Option<Measurement>; 3],
     /// Why the last update's first labelling failed (`None` once tracks run).
     not_started: Option<NotStarted>,
+    /// When the tracks last started from the labelling rules.
+    started_at: f64,
+    /// Whether a hand track was re-initialised since then.
+    hand_jumped: bool,
 }
 
 impl Tracker {
@@ -272,6 +290,8 @@ impl Tracker {
             reinitialisations: 0,
             assigned: [None; 3],
             not_started: None,
+            started_at: f64::NEG_INFINITY,
+            hand_jumped: false,
         }
     }
 
@@ -373,13 +393,23 @@ impl Tracker {
         let tracks = match self.predictions(t) {
             Some(predicted) => self.follow(gap_s, predicted, &clusters, anchor).map(|tracks| {
                 if long_gap {
-                    self.uncrossed(tracks)
+                    self.uncrossed(tracks, 0.0)
+                } else if self.hand_jumped
+                    && t - self.started_at <= self.config.settle_s
+                    && self.assigned[1].is_some()
+                    && self.assigned[2].is_some()
+                {
+                    self.uncrossed(tracks, self.config.settle_margin_m)
                 } else {
                     tracks
                 }
             }),
             None => match self.start(&clusters, anchor) {
-                Ok(tracks) => Some(tracks),
+                Ok(tracks) => {
+                    self.started_at = t;
+                    self.hand_jumped = false;
+                    Some(tracks)
+                }
                 Err(why) => {
                     self.not_started = Some(why);
                     None
@@ -452,10 +482,11 @@ impl Tracker {
     /// After a gap longer than a track may coast: hands followed from where they were last
     /// seen that come out on each other's side of the signer moved past each other unseen
     /// (each took the other), so they trade places. Arms held crossed through a gap are
-    /// rarer than hands that swapped sides during it.
-    fn uncrossed(&mut self, mut tracks: [Track; 3]) -> [Track; 3] {
+    /// rarer than hands that swapped sides during it. The same while the first labelling
+    /// settles ([`TrackerConfig::settle_s`]), for hands more than `margin_m` across.
+    fn uncrossed(&mut self, mut tracks: [Track; 3], margin_m: f64) -> [Track; 3] {
         let side = |k: &Track| k.position.dot(&self.signer_left);
-        if side(&tracks[1]) < side(&tracks[2]) {
+        if side(&tracks[2]) - side(&tracks[1]) > margin_m {
             tracks.swap(1, 2);
             self.assigned.swap(1, 2);
         }
@@ -627,6 +658,7 @@ impl Tracker {
                     let distance = (c.position - p).norm();
                     if distance > gate {
                         self.reinitialisations += 1;
+                        self.hand_jumped |= k > 0;
                         self.assigned[k] = Some(Measurement { cluster: i, pull: 1.0 });
                         self.fresh(c, 0.5)
                     } else {
@@ -920,6 +952,63 @@ mod tests {
             }
         }
         assert_eq!(t.reinitialisations(), 0);
+    }
+
+    /// At 30 fps: hand tracks started on two pieces near the middle of the body (the left
+    /// one higher, 0.5 m apart), held for `still_s`, then the pieces gone and the hands seen where each
+    /// piece's nearest cluster is the other hand, farther than the gate: the left hand low
+    /// on the signer's left (+x), the right hand high on their right. Returns the tracks of
+    /// that frame and the number of re-initialisations.
+    fn pieces_then_hands(still_s: f64) -> ([Track; 3], u64) {
+        let mut t = tracker();
+        let head = cluster(0.0, 1.6, 0.0, 2.0);
+        let pieces = fit(vec![head, cluster(0.05, 1.25, 0.0, 1.0), cluster(-0.05, 0.75, 0.0, 1.0)]);
+        let dt = 1.0 / 30.0;
+        let mut time = 0.0;
+        while time <= still_s {
+            let tracks = t.update(time, Some(&pieces));
+            assert!((tracks[1].position.x - 0.05).abs() < 1e-9, "started by side: {:?}", tracks[1].position);
+            assert!((tracks[2].position.x + 0.05).abs() < 1e-9, "started by side: {:?}", tracks[2].position);
+            time += dt;
+        }
+        let hands = fit(vec![head, cluster(0.3, 0.7, 0.0, 1.0), cluster(-0.3, 1.3, 0.0, 1.0)]);
+        // Beyond the gate, a track coasts one frame and is re-initialised in the next.
+        t.update(time, Some(&hands));
+        (t.update(time + dt, Some(&hands)), t.reinitialisations())
+    }
+
+    #[test]
+    fn hands_that_jump_onto_each_others_side_while_the_tracks_settle_trade_labels() {
+        let (tracks, jumps) = pieces_then_hands(0.1);
+        assert_eq!(jumps, 2, "both hand tracks jumped past their gates");
+        assert_eq!(tracks[1].position.x, 0.3, "the left hand is the one on the signer's left");
+        assert_eq!(tracks[2].position.x, -0.3);
+    }
+
+    #[test]
+    fn once_the_tracks_have_settled_a_jump_keeps_the_labels_it_gives() {
+        // Past the first second the labels followed so far are the evidence, not the side
+        // (arms held crossed).
+        let (tracks, jumps) = pieces_then_hands(1.5);
+        assert_eq!(jumps, 2);
+        assert_eq!(tracks[1].position.x, -0.3);
+        assert_eq!(tracks[2].position.x, 0.3);
+    }
+
+    #[test]
+    fn hands_held_together_at_the_middle_while_settling_keep_their_labels() {
+        let mut t = tracker();
+        let head = cluster(0.0, 1.6, 0.0, 2.0);
+        t.update(0.0, Some(&fit(vec![head, cluster(0.05, 1.25, 0.0, 1.0), cluster(-0.05, 0.75, 0.0, 1.0)])));
+        // Both jump, 36 cm forwards, to hands 10 cm apart across the middle, each on the
+        // other's side.
+        let forwards = |x: f64, y: f64| Component { position: Vector3::new(x, y, 0.35), ..cluster(x, y, 0.0, 1.0) };
+        let hands = fit(vec![head, forwards(0.05, 0.75), forwards(-0.05, 1.25)]);
+        t.update(1.0 / 30.0, Some(&hands));
+        let tracks = t.update(2.0 / 30.0, Some(&hands));
+        assert_eq!(t.reinitialisations(), 2);
+        assert_eq!(tracks[1].position.x, -0.05, "within the margin: no trade");
+        assert_eq!(tracks[2].position.x, 0.05);
     }
 
     #[test]
