@@ -7,10 +7,10 @@
 #![allow(clippy::unwrap_used)]
 
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
-use handflow_e2e::{binaries_dir, render_preset, spawn_lines, unique_prefix, LineProcess};
+use handflow_e2e::{binaries_dir, output_within, render_preset, spawn_lines, unique_prefix, LineProcess};
 
 /// Starts a subscriber and waits until it listens.
 fn start(command: Command) -> LineProcess {
@@ -50,8 +50,8 @@ fn rust_and_python_recognisers_get_every_sample_and_see_the_hands_cross() {
         start(py)
     });
 
-    let run = Command::new(binaries_dir().join("handflow"))
-        .args([
+    let run = output_within(
+        Command::new(binaries_dir().join("handflow")).args([
             "run",
             "--no-viewer",
             "--recording",
@@ -60,11 +60,10 @@ fn rust_and_python_recognisers_get_every_sample_and_see_the_hands_cross() {
             out.to_str().unwrap(),
             "--services",
             &prefix,
-        ])
-        .stderr(Stdio::null())
-        .output()
-        .unwrap();
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stdout));
+        ]),
+        Duration::from_secs(300),
+    );
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
 
     let published = std::fs::read_to_string(&out).unwrap().lines().count();
     assert_eq!(published, frames as usize);

@@ -11,7 +11,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use handflow_e2e::{binaries_dir, pids_of, render_preset, spawn_lines, unique_prefix, LineProcess};
+use handflow_e2e::{
+    binaries_dir, exit_within, in_own_group, output_within, pids_of, render_preset, spawn_lines, unique_prefix,
+    LineProcess,
+};
 
 /// A TCP port on loopback that nothing listens on right now.
 fn free_port() -> u16 {
@@ -98,11 +101,10 @@ fn remote_subscribers_receive_every_sample_of_a_replay_in_order() {
     // Every sample and the end of the stream.
     let tap = remote_tap(&endpoint, Some(frames as usize + 1));
 
-    let run = Command::new(binaries_dir().join("handflow"))
-        .args(["run", "--no-viewer", pipeline.to_str().unwrap()])
-        .stdout(Stdio::null())
-        .output()
-        .unwrap();
+    let run = output_within(
+        Command::new(binaries_dir().join("handflow")).args(["run", "--no-viewer", pipeline.to_str().unwrap()]),
+        Duration::from_secs(300),
+    );
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
 
     let published = file_frames(&out);
@@ -131,7 +133,7 @@ fn killing_the_bridge_leaves_the_local_outputs_whole_and_the_remote_side_resumes
     let (pipeline, out) = write_pipeline(dir.path(), &rec, &prefix, &endpoint, "recorded");
     let tap = remote_tap(&endpoint, None);
 
-    let mut run = Command::new(binaries_dir().join("handflow"))
+    let mut run = in_own_group(&mut Command::new(binaries_dir().join("handflow")))
         .args(["run", "--no-viewer", pipeline.to_str().unwrap()])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -160,9 +162,9 @@ fn killing_the_bridge_leaves_the_local_outputs_whole_and_the_remote_side_resumes
             break killed_at.elapsed();
         }
     };
-    let status = run.wait().unwrap();
+    let status = exit_within(&mut run, Duration::from_secs(300));
     let log = log.join().unwrap();
-    assert!(status.success(), "{log}");
+    assert!(status.is_some_and(|s| s.success()), "{status:?}\n{log}");
     assert!(log.contains("stage bridge ended") && log.contains("restarting it"), "{log}");
     // The pipeline never waited for the bridge: every frame, none lost, in the local file.
     assert_eq!(file_frames(&out), (0..frames as u64).collect::<Vec<_>>());

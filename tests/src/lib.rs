@@ -165,6 +165,31 @@ pub fn exit_within(child: &mut std::process::Child, timeout: std::time::Duration
     }
 }
 
+/// Runs `command` in a process group of its own to its end, its output collected, as
+/// [`Command::output`] does, but within `timeout`: after it the whole group is killed and
+/// the test fails with the standard error so far.
+pub fn output_within(command: &mut Command, timeout: Duration) -> std::process::Output {
+    use std::io::Read;
+    let mut child =
+        in_own_group(command.stdout(Stdio::piped()).stderr(Stdio::piped())).spawn().expect("the process starts");
+    let read_all = |mut pipe: Box<dyn Read + Send>| {
+        std::thread::spawn(move || {
+            let mut bytes = Vec::new();
+            let _ = pipe.read_to_end(&mut bytes);
+            bytes
+        })
+    };
+    let stdout = read_all(Box::new(child.stdout.take().expect("piped standard output")));
+    let stderr = read_all(Box::new(child.stderr.take().expect("piped standard error")));
+    let status = exit_within(&mut child, timeout);
+    // Every process of the group is gone once it ends or is killed: the pipes close.
+    let (stdout, stderr) = (stdout.join().unwrap_or_default(), stderr.join().unwrap_or_default());
+    let Some(status) = status else {
+        panic!("{command:?} did not end within {timeout:?}:\n{}", String::from_utf8_lossy(&stderr))
+    };
+    std::process::Output { status, stdout, stderr }
+}
+
 /// Makes `command` start a process group of its own: a launcher started so takes its
 /// stages along when [`kill_group`] kills it, and nothing is left holding the pipes a
 /// test reads to their end.
