@@ -4,16 +4,13 @@
 
 #![allow(clippy::unwrap_used)]
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use handflow::eval::tracks::{evaluate_tracks, read_tracks};
-use handflow_e2e::{
-    binaries_dir, exit_within, in_own_group, render_preset, spawn_lines, track_with_cli, unique_prefix,
-};
+use handflow_e2e::{binaries_dir, output_within, render_preset, spawn_lines, track_with_cli, unique_prefix};
 use handflow_ingest::Recording;
 
 static ONE_PIPELINE_AT_A_TIME: Mutex<()> = Mutex::new(());
@@ -31,24 +28,11 @@ fn run_pipeline(file: &Path, timeout: Duration) -> (bool, String) {
     run_handflow(&["run".as_ref(), "--no-viewer".as_ref(), file.as_os_str()], timeout)
 }
 
-/// Runs `handflow ARGS` in a process group of its own, returning whether it succeeded and
-/// its log; after `timeout` the whole group is killed and the test fails with the log so
-/// far.
+/// Runs `handflow ARGS` ([`output_within`]: killed with its stages after `timeout`),
+/// returning whether it succeeded and its log.
 fn run_handflow(args: &[&std::ffi::OsStr], timeout: Duration) -> (bool, String) {
-    let mut command = Command::new(binaries_dir().join("handflow"));
-    command.args(args).stdin(Stdio::null()).stdout(Stdio::null()).stderr(Stdio::piped());
-    let mut child: Child = in_own_group(&mut command).spawn().unwrap();
-    let mut stderr = child.stderr.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut text = String::new();
-        let _ = stderr.read_to_string(&mut text);
-        text
-    });
-    let status = exit_within(&mut child, timeout);
-    // Every process that held the log's pipe is gone once the group is: the reader ends.
-    let log = reader.join().unwrap();
-    let status = status.unwrap_or_else(|| panic!("`handflow {args:?}` did not end within {timeout:?}:\n{log}"));
-    (status.success(), log)
+    let run = output_within(Command::new(binaries_dir().join("handflow")).args(args).stdin(Stdio::null()), timeout);
+    (run.status.success(), String::from_utf8_lossy(&run.stderr).into_owned())
 }
 
 /// Each camera's rendered frames as an H.264 video at `fps`.

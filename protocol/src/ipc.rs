@@ -216,7 +216,7 @@ pub fn create_node_in(namespace: &UserNamespace, stage: &str) -> Result<Node<Ipc
     set_log_level_from_env_or(LogLevel::Error);
     let name = NodeName::new(stage).map_err(|e| IpcError::new(stage, format!("not a valid node name: {e:?}")))?;
     namespace.check_owner().map_err(|e| IpcError::new(stage, e))?;
-    namespace.remove_unfinished_segments();
+    remove_unfinished_segments(&namespace.file_prefix());
     let config = namespace.config().map_err(|e| IpcError::new(stage, e))?;
     NodeBuilder::new()
         .name(&name)
@@ -272,13 +272,6 @@ impl UserNamespace {
     /// The prefix of every file name, shared memory included.
     pub fn file_prefix(&self) -> String {
         format!("hf{}{}_", self.uid, self.label)
-    }
-
-    /// Removes the shared memory a process of this namespace was killed while creating
-    /// (see [`crate::unfinished_shm`]), waiting for a segment being created at this moment;
-    /// says so in the log when it removed any.
-    pub fn remove_unfinished_segments(&self) {
-        remove_unfinished_segments(&self.file_prefix());
     }
 
     /// Refuses a directory that exists but belongs to another user: someone else could
