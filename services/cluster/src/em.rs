@@ -497,7 +497,8 @@ fn mean_of(set: &[&WeightedPoint]) -> (Vector3<f64>, Vector3<f64>) {
 /// metres: head and hands of a person lie within about a metre of their middle.
 pub const EXTREMITY_RADIUS_M: f64 = 1.0;
 
-fn weighted_median(points: &[&WeightedPoint], value: impl Fn(&WeightedPoint) -> f64) -> f64 {
+/// The value at half of `points`' weight, in the order of `value`.
+pub(crate) fn weighted_median(points: &[&WeightedPoint], value: impl Fn(&WeightedPoint) -> f64) -> f64 {
     let mut v: Vec<(f64, f64)> = points.iter().map(|p| (value(p), p.weight)).collect();
     v.sort_by(|a, b| a.0.total_cmp(&b.0));
     let half = v.iter().map(|x| x.1).sum::<f64>() / 2.0;
