@@ -194,7 +194,7 @@ pub fn locate_hand(
 /// the arm the place stays where the hand's length puts it: there the densest skin is often
 /// the fingers. Measured on a replay of the shared real session: a second blob 20 cm beside
 /// the right hand held 37 % of its window, whose centroid was 7.6 cm off; the median across
-/// the arm was 3.5 cm off, the densest place from there 1.9 cm.
+/// the arm was 3.5 cm off, the densest place from there 1.8 cm.
 fn densest_across(window: &[&WeightedPoint], start: Vector3<f64>, axis: Vector3<f64>) -> Vector3<f64> {
     let mut at = start;
     for _ in 0..MEAN_SHIFT_STEPS {
