@@ -52,9 +52,9 @@ pub fn continuity_weight(miss_m: f64) -> f64 {
 /// Radius of the hand's skin around its centre, metres: half a hand's length, so a window
 /// of it holds the palm and the fingers' roots (the palm is 8-9 cm wide, 10 cm long).
 pub const HAND_RADIUS_M: f64 = HAND_LENGTH_M / 2.0;
-/// Most mean-shift steps towards the densest skin of the hand, and the move below which it
-/// has settled, metres.
+/// Most mean-shift steps towards the densest skin of the hand.
 const MEAN_SHIFT_STEPS: usize = 10;
+/// A mean-shift step shorter than this has settled, metres.
 const MEAN_SHIFT_TOLERANCE_M: f64 = 0.001;
 /// Squared Mahalanobis distance (3 degrees of freedom, 99 %) within which a point belongs
 /// to the cluster whose Gaussian explains it best.
@@ -80,8 +80,9 @@ pub struct HandLocation {
 /// Locates the hand in component `cluster` of `components` (the frame's fit), given the
 /// head's position and the world's up. Points belong to the component whose position
 /// Gaussian explains them best, within 99 % of it. When they reach farther than
-/// [`HAND_ONLY_EXTENT_M`] along their main axis, the hand is the centroid of the
-/// [`HAND_LENGTH_M`] at the distal end. The distal end is the one that is higher plus
+/// [`HAND_ONLY_EXTENT_M`] along their main axis, the hand lies in the [`HAND_LENGTH_M`] at
+/// the distal end: along the axis at their centroid, across it at their densest skin
+/// ([`densest_across`]). The distal end is the one that is higher plus
 /// farther out from the vertical axis through the head: an elbow hangs below the hand and
 /// stays by the body while the hand signs, reaches or rests in the lap in front of it; less
 /// a weight times its distance from `expected`, where the track predicts the hand, with the
