@@ -51,8 +51,14 @@ ref["frames"] = [dict(by_frame[src], frame=i) for i, src in enumerate(order[:fra
 (out / "reference.json").write_text(json.dumps(ref))
 (out / "passes.json").write_text(json.dumps({"frames_per_pass": n, "frames": frames}))
 EOF
-/usr/bin/time -f "track: peak memory %M KB, %e s wall, %U s user" \
-    "$bin" track --recording "$out" --out "$out/tracks-$seed.jsonl" --seed "$seed" 2>"$out/track-$seed.log" \
+# GNU time gives the peak memory; without it (Debian's `time` package) the run goes on unmeasured.
+measure=()
+if [ -x /usr/bin/time ]; then
+    measure=(/usr/bin/time -f "track: peak memory %M KB, %e s wall, %U s user")
+else
+    echo "long_replay: /usr/bin/time not found (apt-get install time): peak memory not measured" >&2
+fi
+"${measure[@]}" "$bin" track --recording "$out" --out "$out/tracks-$seed.jsonl" --seed "$seed" 2>"$out/track-$seed.log" \
     || { tail -5 "$out/track-$seed.log" >&2; exit 1; }
 tail -2 "$out/track-$seed.log"
 "$bin" eval tracks --recording "$out" --tracks "$out/tracks-$seed.jsonl" --reference "$out/reference.json" \
